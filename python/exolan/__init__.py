@@ -1,0 +1,20 @@
+"""exolan: physics-consistent, context-aware learned dynamics of the human-exoskeleton leg.
+
+The learning side (torch) lives in this package; the fast engine is the Rust extension
+``exolan._native``.
+"""
+from importlib.metadata import PackageNotFoundError, version as _dist_version
+
+try:
+    __version__ = _dist_version("exolan")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0+unknown"
+
+try:
+    from . import _native
+    native_version = _native.__version__
+except ImportError:  # the extension is not built; `exolan doctor` says so
+    _native = None
+    native_version = None
+
+__all__ = ["__version__", "native_version"]

@@ -1,0 +1,147 @@
+"""The ``exolan`` command line.
+
+Each subcommand's arguments are declared here; its work lives in the module named by
+``_HANDLERS`` (one concept, one home) and is imported only when the subcommand runs, so that
+``exolan --version`` and ``exolan doctor`` stay fast.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import platform
+import sys
+
+from . import __version__
+
+# subcommand -> "module:function"; the function takes the parsed argparse.Namespace
+_HANDLERS = {
+    "doctor": "exolan.cli:doctor",
+    "simulate": "exolan.world:cli_simulate",
+    "plot": "exolan.plots:cli_plot",
+    "train": "exolan.train:cli_train",
+    "evaluate": "exolan.evaluate:cli_evaluate",
+    "export": "exolan.export:cli_export",
+    "rollout": "exolan.engine:cli_rollout",
+    "reproduce": "exolan.reproduce:cli_reproduce",
+    "diagnose": "exolan.diagnose:cli_diagnose",
+    "pipeline": "exolan.pipeline:cli_pipeline",
+}
+
+
+class NotImplementedYet(SystemExit):
+    pass
+
+
+def doctor(args: argparse.Namespace) -> int:
+    """Print the versions that must agree and the threads this machine offers."""
+    import exolan
+
+    print(f"exolan (python package) {exolan.__version__}")
+    print(f"python                  {platform.python_version()} ({sys.executable})")
+    try:
+        import torch
+
+        print(f"torch                   {torch.__version__} (threads: {torch.get_num_threads()}, "
+              f"cuda: {torch.cuda.is_available()})")
+    except ImportError:
+        print("torch                   NOT INSTALLED")
+    native = exolan.native_version
+    print(f"exolan._native (Rust)   {native if native else 'NOT BUILT'}")
+    print(f"cpu threads             {os.cpu_count()}")
+    ok = native is not None and native == exolan.__version__
+    print("native build matches python package: " + ("yes" if ok else "NO"))
+    return 0 if ok else 1
+
+
+def _add_parsers(sub: argparse._SubParsersAction) -> None:
+    sub.add_parser("doctor", help="versions of Python, torch, the native module and the crate")
+
+    p = sub.add_parser("simulate", help="write a simulated exoskeleton world (layout 1)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--users", type=int, default=21)
+    p.add_argument("--tasks", default="all", help="'all', 'train' (the paper's 7) or comma-separated names")
+    p.add_argument("--seconds", type=float, default=None, help="seconds per trial (default: per task)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--effect", action="append", default=[],
+                   help="NAME:JOINT:VALUE[:SUBJECTS] (values comma-separated for multi-parameter effects, "
+                        "subjects separated by '+'); repeatable")
+    p.add_argument("--noise-free", action="store_true", help="no sensor noise (for physics checks)")
+
+    p = sub.add_parser("plot", help="draw a trial (angles, moments, insole force) to a PNG")
+    p.add_argument("trial_dir", help="<root>/<SUBJECT>/<task>_k_m directory")
+    p.add_argument("--out", default=None)
+
+    p = sub.add_parser("train", help="train a model (ExoLaN or a baseline)")
+    p.add_argument("--data", default=None)
+    p.add_argument("--method", default=None, help="exolan, delan-lstm, delan, mlp-tcn, mlp-lstm, mlp, tcn, lstm")
+    p.add_argument("--no-lim", action="store_true")
+    p.add_argument("--w-fd", type=float, default=None)
+    p.add_argument("--w-ms", type=float, default=None)
+    p.add_argument("--epochs", type=int, default=None)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--config", default=None, help="TOML file; command-line flags override it")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
+    p.add_argument("--resume", action="store_true")
+    p.add_argument("--out", required=True)
+
+    p = sub.add_parser("evaluate", help="held-out torque and forward-dynamics errors of a run")
+    p.add_argument("run")
+    p.add_argument("--data", required=True)
+    p.add_argument("--out", default=None, help="JSON file (default: RUN/evaluation.json)")
+
+    p = sub.add_parser("export", help="export a trained run's weights (float64 safetensors) for the Rust engine")
+    p.add_argument("run")
+    p.add_argument("--out", required=True)
+
+    p = sub.add_parser("rollout", help="open-loop rollouts of an exported model with the Rust engine")
+    p.add_argument("model")
+    p.add_argument("--data", required=True)
+    p.add_argument("--horizon", type=int, default=20)
+    p.add_argument("--out", default=None)
+
+    p = sub.add_parser("reproduce", help="the paper's studies and report")
+    p.add_argument("--scale", choices=["small", "medium", "paper"], default="small")
+    p.add_argument("--data", default=None)
+    p.add_argument("--out", required=True)
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--ray", default=None, metavar="ADDRESS")
+
+    p = sub.add_parser("diagnose", help="find what the model's physics gets wrong, extend it, measure the gain")
+    p.add_argument("data")
+    p.add_argument("--model", default=None)
+    p.add_argument("--out", required=True)
+
+    p = sub.add_parser("pipeline", help="the main job: simulate, train, evaluate, export, rollout, diagnose, report")
+    p.add_argument("--out", default="out/main")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="exolan", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"exolan {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    _add_parsers(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    module_name, func_name = _HANDLERS[args.command].split(":")
+    try:
+        module = importlib.import_module(module_name)
+        handler = getattr(module, func_name)
+    except (ImportError, AttributeError) as exc:
+        if isinstance(exc, ImportError) and exc.name not in (module_name, None):
+            raise
+        print(f"exolan {args.command}: not implemented yet", file=sys.stderr)
+        return 3
+    rc = handler(args)
+    return int(rc or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
