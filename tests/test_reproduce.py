@@ -1,0 +1,270 @@
+"""Orchestration of the paper's studies (`exolan reproduce`): planning, the real-data split, resumable
+sweeps, local process pool vs serial vs Ray giving the same numbers, and the report's content.
+
+Most tests use a stand-in backend (defined here: a tiny synthetic world and closed-form "models" with
+the documented model interface) so that the orchestration is exercised in seconds; the real models are
+exercised by `test_reproduce_real.py`."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from exolan import reproduce as R
+
+HERE = Path(__file__).resolve().parent
+STANDIN = "test_reproduce:StandInBackend"
+
+
+# ------------------------------------------------------------------------------------------------------
+# Stand-in backend: same contracts as exolan.data / exolan.models, no learning beyond least squares
+# ------------------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class FakeTrial:
+    subject: str
+    task: str
+    name: str
+    side: str
+    mass: float
+    dt: float
+    joints: tuple
+    joint_types: tuple
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    tau: np.ndarray
+    tau_e: np.ndarray
+    f_v: np.ndarray
+    cop: np.ndarray
+    valid: np.ndarray
+
+
+TRAIN_TASKS = ("walk", "stand", "calisthenics", "push_pull", "jump_in_place", "turn", "cut")
+
+
+def fake_world(users=6, tasks=TRAIN_TASKS + ("run", "squat", "ball_toss"), T=160, seed=0):
+    rng = np.random.default_rng(seed)
+    trials = []
+    for u in range(users):
+        mass = 60 + 5 * u
+        for k, task in enumerate(tasks):
+            for side in ("l", "r"):
+                t = np.arange(T) * 0.005
+                w = 2 * np.pi * (0.8 + 0.15 * k)
+                ph = rng.uniform(0, 2 * np.pi, 2)
+                amp = np.array([0.5, 0.8]) * (0.5 + 0.05 * k)
+                q = amp * np.sin(w * t[:, None] + ph)
+                qd = amp * w * np.cos(w * t[:, None] + ph)
+                qdd = -amp * w ** 2 * np.sin(w * t[:, None] + ph)
+                fv = np.maximum(0, np.sin(w * t + ph[0])) * mass * 9.81
+                tau = mass * (0.02 * qdd + 0.5 * np.sin(q) + 0.01 * qd) + 0.03 * fv[:, None]
+                tau = tau + rng.normal(0, 0.5, tau.shape)
+                valid = np.ones(T, bool)
+                valid[:3] = False
+                trials.append(FakeTrial(f"S{u:02d}", task, f"{task}_1_1", side, float(mass), 0.005,
+                                        ("hip", "knee"), ("revolute", "revolute"), q, qd, qdd, tau,
+                                        np.zeros_like(tau), fv, np.zeros((T, 2)), valid))
+    return trials
+
+
+class FakeModel(torch.nn.Module):
+    """tau = a*qdd + W [sin q, cos q, qd, f_v, z, 1]: linear, so forward dynamics is (tau - rest)/a."""
+
+    def __init__(self, dz, seed):
+        super().__init__()
+        g = torch.Generator().manual_seed(1234)
+        self.dz = dz
+        self.Wz = torch.nn.Parameter(torch.randn(7, dz, generator=g, dtype=torch.float64) * 0.1,
+                                     requires_grad=False)
+        self.a = torch.nn.Parameter(torch.ones(2, dtype=torch.float64), requires_grad=False)
+        self.W = torch.nn.Parameter(torch.zeros(7 + dz, 2, dtype=torch.float64), requires_grad=False)
+
+    def context(self, x):
+        x = torch.nan_to_num(x)
+        return torch.tanh(x @ self.Wz / 50.0)
+
+    def _feat(self, q, qd, z, fv):
+        return torch.cat([torch.sin(q), torch.cos(q), qd, fv[..., None] / 100, z], -1)
+
+    def inverse(self, q, qd, qdd, z, f_v):
+        return self.a * qdd + self._feat(q, qd, z, f_v) @ self.W
+
+    def forward_dynamics(self, q, qd, tau, z, f_v):
+        return (tau - self._feat(q, qd, z, f_v) @ self.W) / self.a
+
+
+class StandInBackend:
+    def simulate(self, out, scale):
+        Path(out).mkdir(parents=True, exist_ok=True)
+        (Path(out) / "fake.json").write_text(json.dumps({"users": scale.users, "seed": scale.world_seed}))
+
+    def load(self, data_dir):
+        p = Path(data_dir) / "fake.json"
+        cfg = json.loads(p.read_text()) if p.exists() else {"users": 6, "seed": 0}
+        return fake_world(users=cfg["users"], seed=cfg["seed"])
+
+    def split(self, trials):
+        subs = sorted({t.subject for t in trials})
+        held = set(subs[len(subs) - len(subs) // 3:])
+        train = [t for t in trials if t.subject not in held and t.task in TRAIN_TASKS]
+        seen = [t for t in trials if t.subject in held and t.task in TRAIN_TASKS]
+        unseen = [t for t in trials if t.subject in held and t.task not in TRAIN_TASKS]
+        return train, seen, unseen
+
+    def context_features(self, tr):
+        return np.concatenate([tr.q, tr.qd, tr.f_v[:, None], tr.cop], 1)
+
+    def task_groups(self):
+        return {"walk": "cyclic", "run": "cyclic"}
+
+    def train(self, spec, train, run_dir, data_dir, device, threads):
+        dz = 0 if spec.arch in ("mlp", "delan") else 3
+        m = FakeModel(dz, spec.seed)
+        ckpt = Path(run_dir) / "model.pt"
+        if ckpt.exists():  # resume = reuse
+            m.load_state_dict(torch.load(ckpt))
+            return m
+        X, Y, A = [], [], []
+        with torch.no_grad():
+            for tr in train:
+                z = m.context(torch.as_tensor(self.context_features(tr))[None])[0]
+                f = m._feat(torch.as_tensor(tr.q), torch.as_tensor(tr.qd), z, torch.as_tensor(tr.f_v))
+                X.append(torch.cat([f, torch.as_tensor(tr.qdd)], 1).numpy()[tr.valid])
+                Y.append(tr.tau[tr.valid])
+        X, Y = np.concatenate(X), np.concatenate(Y)
+        rng = np.random.default_rng(spec.seed)
+        lam = 1e-3 * (1 + rng.random()) * (10 if not spec.lim else 1)
+        coef = np.linalg.solve(X.T @ X + lam * len(X) * np.eye(X.shape[1]), X.T @ Y)
+        with torch.no_grad():
+            m.W.copy_(torch.as_tensor(coef[:-2]))
+            m.a.copy_(torch.as_tensor(np.clip(np.diag(coef[-2:]), 1e-3, None)))
+        torch.save(m.state_dict(), ckpt)
+        return m
+
+
+# ------------------------------------------------------------------------------------------------------
+# tests
+# ------------------------------------------------------------------------------------------------------
+
+def test_plan_has_16_methods_per_seed_and_shares_the_inverse_only_run():
+    specs = R.plan(R.SCALES["small"], with_real=False)
+    world = [s for s in specs if s.dataset == "world"]
+    for seed in R.SCALES["small"].seeds:
+        intent = {(s.arch, s.lim) for s in world if s.seed == seed and s.w_fd == 0 and s.w_ms == 0}
+        assert len(intent) == 16
+        fd = [s for s in world if s.seed == seed and s.arch == "exolan" and s.lim]
+        assert len(fd) == 3  # inverse only (shared with the intention study), + w_fd, + w_fd & w_ms
+    assert len({s.run_id for s in specs}) == len(specs)
+    paper = R.SCALES["paper"]
+    assert paper.epochs == 1000 and len(paper.seeds) == 5
+
+
+def test_real_split_is_disjoint_and_covers_the_three_held_out_kinds():
+    trials = []
+    for subj, task, name in [("REAL01", "walk", "walk_1_1"), ("REAL01", "walk", "walk_2_1"),
+                             ("REAL01", "walk", "walk_3_1"), ("REAL01", "squat", "squat_1_1"),
+                             ("REAL01", "squat_asym", "squat_asym_1_1"), ("REAL04", "walk", "walk_1_1")]:
+        tr = fake_world(users=1, tasks=("walk",), T=100)[0]
+        trials.append(dataclasses.replace(tr, subject=subj, task=task, name=name))
+    train, tests = R.real_split(trials)
+    assert [t.name for t in train] == ["walk_1_1", "walk_2_1", "squat_1_1"]
+    assert len(train[-1].q) == 70 and len(tests["seen"][-1].q) == 30  # time split of a single trial
+    assert [t.name for t in tests["seen"]] == ["walk_3_1", "squat_1_1"]
+    assert [t.task for t in tests["unseen_task"]] == ["squat_asym"]
+    assert [t.subject for t in tests["unseen_user"]] == ["REAL04"]
+
+
+def _metrics(out: Path) -> dict:
+    """Everything numeric the runs produced, minus wall-clock times."""
+    res = {}
+    for f in sorted((out / "runs").rglob("result.json")):
+        r = json.loads(f.read_text())
+        for k in ("train_seconds", "eval_seconds"):
+            r.pop(k)
+        res[str(f.relative_to(out))] = r
+    return res
+
+
+@pytest.fixture(scope="module")
+def tiny_serial(tmp_path_factory):
+    out = tmp_path_factory.mktemp("tiny_serial")
+    summary = R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=None, log=lambda *a: None)
+    return out, summary
+
+
+def test_tiny_sweep_writes_a_complete_report(tiny_serial):
+    out, summary = tiny_serial
+    md = (out / "report.md").read_text()
+    for heading in ("## 1. Human intention estimation", "## 2. Forward dynamics",
+                    "## 3. Task identification", "## 4. Real recordings"):
+        assert heading in md
+    assert "paper (real data)" in md
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["intention"]) == 6  # tiny: 3 architectures x with/without LIM
+    assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms"}
+    assert res["task_identification"]["sample_split"]["exolan"]["accuracy"][0] > 0
+    assert any(c["claim"].startswith("ExoLaN+LIM vs TCN+LIM") for c in res["intention_claims"])
+    for name in ("mse_bars", "torque_tasks", "accelerations", "rollouts", "rollout_error_growth",
+                 "task_identification"):
+        png = out / res["figures"][name]
+        assert png.stat().st_size > 10_000, name  # a real drawing, not an empty canvas
+        assert f"]({res['figures'][name]})" in md
+
+
+def test_rerun_skips_finished_runs_and_gives_identical_numbers(tiny_serial):
+    out, _ = tiny_serial
+    before = _metrics(out)
+    lines = []
+    R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=None, log=lines.append)
+    assert any("0 to run" in l for l in lines), lines
+    assert _metrics(out) == before
+
+
+def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, tmp_path):
+    out, _ = tiny_serial
+    import shutil
+    shutil.copytree(out, tmp_path / "s")
+    victim = next((tmp_path / "s" / "runs").rglob("DONE"))
+    victim.unlink()  # as if killed before this run finished
+    lines = []
+    R.reproduce("tiny", tmp_path / "s", workers=1, backend=STANDIN, real_dir=None, log=lines.append)
+    assert any("1 to run" in l for l in lines), lines
+    a, b = _metrics(out), _metrics(tmp_path / "s")
+    assert a == b
+
+
+def test_process_pool_gives_the_serial_numbers(tiny_serial, tmp_path):
+    out, _ = tiny_serial
+    R.reproduce("tiny", tmp_path, workers=2, backend=STANDIN, real_dir=None, log=lambda *a: None)
+    assert _metrics(tmp_path) == _metrics(out)
+
+
+def test_paired_statistics():
+    from exolan import report
+    a = {f"u{i}": 1.0 + 0.01 * i for i in range(7)}
+    b = {f"u{i}": 2.0 + 0.01 * i for i in range(7)}
+    r = report.paired(a, b, [1.0, 1.1], [2.0, 2.2])
+    assert r["rel_change"] < 0 and r["users_better"] == 7
+    assert r["p_wilcoxon_users"] == pytest.approx(1 / 64)  # exact two-sided, all 7 in one direction
+    assert report._holds(r, -0.05) == "holds"
+    assert report._holds(r, +0.05) == "reversed (significant)"
+
+
+@pytest.mark.ray
+def test_ray_path_gives_the_local_numbers(tiny_serial, tmp_path):
+    ray = pytest.importorskip("ray", reason="optional dependency ray not installed (pip install exolan[ray])")
+    out, _ = tiny_serial
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([str(HERE)] + sys.path)}})
+    try:
+        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=None, ray_address="auto", log=lambda *a: None)
+    finally:
+        ray.shutdown()
+    assert _metrics(tmp_path) == _metrics(out)
