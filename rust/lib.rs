@@ -19,6 +19,22 @@ pub fn scale_in_place(xs: &mut [f64], k: f64) {
     }
 }
 
+pub mod delan;
+pub mod encoder;
+pub mod error;
+pub mod ext;
+mod math;
+pub mod mlp;
+pub mod model;
+pub mod rollout;
+pub mod synth;
+
+pub use delan::{ExoTorque, Workspace, COND_MAX};
+pub use encoder::EncoderState;
+pub use error::{Error, Result};
+pub use model::{EncoderKind, JointType, Meta, Model};
+pub use rollout::{Inputs, ZSeq};
+
 #[cfg(feature = "python")]
 mod python;
 

@@ -1,0 +1,235 @@
+//! Semi-implicit Euler rollouts (DESIGN.md section 5), single and batched.
+//!
+//!   q̈_k = forward_dynamics(q_k, q̇_k, τ_k, z_k, f_v,k),  q̇_{k+1} = q̇_k + dt q̈_k,  q_{k+1} = q_k + dt q̇_{k+1}
+//!
+//! Outputs hold T+1 states, index 0 being the initial one. A batch spreads its elements over rayon's
+//! threads; each element runs the same sequential code in its own workspace, so the result is
+//! bit-identical for every thread count.
+
+use rayon::prelude::*;
+
+use crate::delan::{check, ExoTorque, Workspace};
+use crate::error::{Error, Result};
+use crate::model::Model;
+
+/// The context over a rollout.
+#[derive(Debug, Clone, Copy)]
+pub enum ZSeq<'a> {
+    /// No context (models without encoder), or keep whatever `set_z` last set.
+    Keep,
+    /// One z for the whole horizon (dz values; batched: B·dz).
+    Const(&'a [f64]),
+    /// z_k per step (T·dz; batched: B·T·dz).
+    PerStep(&'a [f64]),
+}
+
+/// The recorded inputs of a rollout over T steps (batched: each array stacked over the batch).
+#[derive(Debug, Clone, Copy)]
+pub struct Inputs<'a> {
+    /// τ_k, T·n.
+    pub tau: &'a [f64],
+    pub z: ZSeq<'a>,
+    /// f_v,k, T (None: zeros).
+    pub f_v: Option<&'a [f64]>,
+    /// Recorded exoskeleton torque τ_e,k, T·n (None: the terms that need it are off).
+    pub tau_e: Option<&'a [f64]>,
+}
+
+/// τ_e(t − d) by linear interpolation in the recorded sequence (held at the first sample before it).
+pub(crate) fn delayed_into(tau_e: &[f64], n: usize, k: usize, dt: f64, delay: &[f64], out: &mut [f64]) {
+    for i in 0..n {
+        let s = k as f64 - delay[i] / dt;
+        let (idx, frac) = if s <= 0.0 {
+            (0usize, 0.0)
+        } else {
+            let f = s.floor();
+            (f as usize, s - f)
+        };
+        let a = tau_e[idx * n + i];
+        out[i] = if frac > 0.0 && idx + 1 <= k { a + frac * (tau_e[(idx + 1) * n + i] - a) } else { a };
+    }
+}
+
+impl Model {
+    /// Roll out T = `tau.len()/n` steps from (q0, q̇0). Writes (T+1)·n values to `q_out` and `qd_out`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn rollout(
+        &self,
+        ws: &mut Workspace,
+        q0: &[f64],
+        qd0: &[f64],
+        inp: Inputs,
+        dt: f64,
+        q_out: &mut [f64],
+        qd_out: &mut [f64],
+    ) -> Result<()> {
+        let n = self.n;
+        check("q0", q0, n)?;
+        check("qd0", qd0, n)?;
+        if !(dt.is_finite() && dt > 0.0) {
+            return Err(Error::NonFiniteInput(format!("dt must be finite and > 0, got {dt}")));
+        }
+        if inp.tau.len() % n != 0 {
+            return Err(Error::InputShape(format!("tau has {} values, not a multiple of n = {n}", inp.tau.len())));
+        }
+        let t_len = inp.tau.len() / n;
+        if q_out.len() != (t_len + 1) * n || qd_out.len() != (t_len + 1) * n {
+            return Err(Error::InputShape(format!("outputs must hold (T+1)·n = {} values", (t_len + 1) * n)));
+        }
+        if inp.tau.iter().any(|v| !v.is_finite()) {
+            return Err(Error::NonFiniteInput("tau".into()));
+        }
+        if let Some(f) = inp.f_v {
+            if f.len() != t_len {
+                return Err(Error::InputShape(format!("f_v has {} values, expected T = {t_len}", f.len())));
+            }
+            if f.iter().any(|v| !v.is_finite()) {
+                return Err(Error::NonFiniteInput("f_v".into()));
+            }
+        }
+        if let Some(te) = inp.tau_e {
+            if te.len() != t_len * n {
+                return Err(Error::InputShape(format!("tau_e has {} values, expected T·n = {}", te.len(), t_len * n)));
+            }
+            if te.iter().any(|v| !v.is_finite()) {
+                return Err(Error::NonFiniteInput("tau_e".into()));
+            }
+        }
+        match inp.z {
+            ZSeq::Keep => {}
+            ZSeq::Const(z) => ws.set_z(self, z)?,
+            ZSeq::PerStep(z) => {
+                if z.len() != t_len * self.dz {
+                    return Err(Error::InputShape(format!("z has {} values, expected T·dz = {}", z.len(), t_len * self.dz)));
+                }
+                if z.iter().any(|v| !v.is_finite()) {
+                    return Err(Error::NonFiniteInput("z".into()));
+                }
+            }
+        }
+        if !ws.z_ready && !matches!(inp.z, ZSeq::PerStep(_)) {
+            return Err(Error::InputShape(format!("context z (dimension {}) not set", self.dz)));
+        }
+        if ws.n != n {
+            return Err(Error::InputShape("workspace was made for a different model".into()));
+        }
+        q_out[..n].copy_from_slice(q0);
+        qd_out[..n].copy_from_slice(qd0);
+        let delay = self.ext.delay.as_deref();
+        for k in 0..t_len {
+            if let ZSeq::PerStep(z) = inp.z {
+                ws.set_z(self, &z[k * self.dz..(k + 1) * self.dz])?;
+            }
+            let (qp, qn) = q_out[k * n..(k + 2) * n].split_at_mut(n);
+            let (qdp, qdn) = qd_out[k * n..(k + 2) * n].split_at_mut(n);
+            let te_now = inp.tau_e.map(|te| &te[k * n..(k + 1) * n]);
+            let mut del = std::mem::take(&mut ws.tau_e_del);
+            let tau_e = match (te_now, delay) {
+                (Some(now), Some(d)) => {
+                    delayed_into(inp.tau_e.unwrap(), n, k, dt, d, &mut del);
+                    Some(ExoTorque { now, delayed: Some(&del) })
+                }
+                (Some(now), None) => Some(ExoTorque { now, delayed: None }),
+                _ => None,
+            };
+            self.ext.physical_q(qp, tau_e.map(|t| t.now), &mut ws.qp);
+            let f_v = inp.f_v.map_or(0.0, |f| f[k]);
+            let mut qdd = std::mem::take(&mut ws.qdd);
+            let r = self.forward_unchecked(ws, qdp, &inp.tau[k * n..(k + 1) * n], f_v, tau_e, &mut qdd);
+            ws.tau_e_del = del;
+            if let Err(e) = r {
+                ws.qdd = qdd;
+                return Err(match e {
+                    Error::IllConditioned { .. } => e,
+                    other => other,
+                });
+            }
+            for i in 0..n {
+                qdn[i] = qdp[i] + dt * qdd[i];
+                qn[i] = qp[i] + dt * qdn[i];
+            }
+            ws.qdd = qdd;
+            if qn.iter().chain(qdn.iter()).any(|v| !v.is_finite()) {
+                return Err(Error::Diverged { step: k + 1 });
+            }
+        }
+        Ok(())
+    }
+
+    /// B independent rollouts in parallel, one workspace each (`wss.len() == B`). Shapes:
+    /// q0, qd0 B·n; tau B·T·n; z Const B·dz or PerStep B·T·dz; f_v B·T; tau_e B·T·n;
+    /// outputs B·(T+1)·n. The first failing element (lowest index) decides the error.
+    #[allow(clippy::too_many_arguments)]
+    pub fn rollout_batch(
+        &self,
+        wss: &mut [Workspace],
+        q0: &[f64],
+        qd0: &[f64],
+        inp: Inputs,
+        dt: f64,
+        q_out: &mut [f64],
+        qd_out: &mut [f64],
+    ) -> Result<()> {
+        let n = self.n;
+        let bsz = wss.len();
+        if bsz == 0 {
+            return Ok(());
+        }
+        if q0.len() != bsz * n || qd0.len() != bsz * n {
+            return Err(Error::InputShape(format!("q0 and qd0 must hold B·n = {} values", bsz * n)));
+        }
+        if inp.tau.len() % (bsz * n) != 0 {
+            return Err(Error::InputShape(format!("tau has {} values, not B·T·n with B = {bsz}, n = {n}", inp.tau.len())));
+        }
+        let t_len = inp.tau.len() / (bsz * n);
+        let per_out = (t_len + 1) * n;
+        if q_out.len() != bsz * per_out || qd_out.len() != bsz * per_out {
+            return Err(Error::InputShape(format!("outputs must hold B·(T+1)·n = {} values", bsz * per_out)));
+        }
+        let dz = self.dz;
+        match inp.z {
+            ZSeq::Const(z) if z.len() != bsz * dz => {
+                return Err(Error::InputShape(format!("z has {} values, expected B·dz = {}", z.len(), bsz * dz)))
+            }
+            ZSeq::PerStep(z) if z.len() != bsz * t_len * dz => {
+                return Err(Error::InputShape(format!("z has {} values, expected B·T·dz = {}", z.len(), bsz * t_len * dz)))
+            }
+            _ => {}
+        }
+        if inp.f_v.is_some_and(|f| f.len() != bsz * t_len) {
+            return Err(Error::InputShape(format!("f_v must hold B·T = {} values", bsz * t_len)));
+        }
+        if inp.tau_e.is_some_and(|f| f.len() != bsz * t_len * n) {
+            return Err(Error::InputShape(format!("tau_e must hold B·T·n = {} values", bsz * t_len * n)));
+        }
+        wss.par_iter_mut()
+            .zip(q_out.par_chunks_mut(per_out))
+            .zip(qd_out.par_chunks_mut(per_out))
+            .enumerate()
+            .for_each(|(b, ((ws, qo), qdo))| {
+                let sub = Inputs {
+                    tau: &inp.tau[b * t_len * n..(b + 1) * t_len * n],
+                    z: match inp.z {
+                        ZSeq::Keep => ZSeq::Keep,
+                        ZSeq::Const(z) => ZSeq::Const(&z[b * dz..(b + 1) * dz]),
+                        ZSeq::PerStep(z) => ZSeq::PerStep(&z[b * t_len * dz..(b + 1) * t_len * dz]),
+                    },
+                    f_v: inp.f_v.map(|f| &f[b * t_len..(b + 1) * t_len]),
+                    tau_e: inp.tau_e.map(|f| &f[b * t_len * n..(b + 1) * t_len * n]),
+                };
+                ws.status = self.rollout(ws, &q0[b * n..(b + 1) * n], &qd0[b * n..(b + 1) * n], sub, dt, qo, qdo).err();
+            });
+        for (b, ws) in wss.iter_mut().enumerate() {
+            if let Some(e) = ws.status.take() {
+                return Err(match e {
+                    Error::Diverged { step } => Error::Diverged { step },
+                    Error::IllConditioned { det, cond } => Error::IllConditioned { det, cond },
+                    Error::InputShape(m) => Error::InputShape(format!("batch element {b}: {m}")),
+                    Error::NonFiniteInput(m) => Error::NonFiniteInput(format!("batch element {b}: {m}")),
+                    other => other,
+                });
+            }
+        }
+        Ok(())
+    }
+}
