@@ -106,15 +106,16 @@ class TrialWorld:
         self.shift = Smooth(rng, spec.shift, (2.0, 8.0))
         self.lean = Smooth(rng, spec.lean, (spec.period, 3 * spec.period)) if spec.lean else None
         self.sway = [Smooth(rng, 1.0, (1.0, 6.0)) for _ in range(2)]
-        self.gait_offset = 0.07 * rng.uniform(0.85, 1.15)  # m, GRF aim ahead/behind the hip
+        self.gait_offset = 0.055 * rng.uniform(0.85, 1.15)  # m, GRF aim ahead/behind the hip
         self.load_style = st["load"]
+        self.tilt0 = 8.0 + rng.normal(0.0, 2.0)  # deg, anterior pelvic tilt when upright
         self.cop_off = st["cop_off"]
         # force profile normalisation over a stance
         s = np.linspace(0, 1, 2001)
         self.shape_mean = float(np.mean(self._shape(s)))
         # exoskeleton controller: a lagged, modulated share of the required torque + its own wiggle
         self.exo_lag = rng.uniform(0.015, 0.03)
-        self.exo_gain = np.array([0.18, 0.13]) * st["assist"]
+        self.exo_gain = np.array([0.12, 0.12]) * st["assist"]
         self.exo_mod = [[Smooth(rng, 0.35, (3.0, 12.0)) for _ in range(2)] for _ in range(2)]
         self.exo_wiggle = [[Smooth(rng, 1.5, (0.2, 1.0), n=4) for _ in range(2)] for _ in range(2)]
 
@@ -138,6 +139,7 @@ class TrialWorld:
         q = np.empty(t.shape + (2, 2))
         qd, qdd = np.empty_like(q), np.empty_like(q)
         frac = np.empty(t.shape + (2,))
+        lift = np.zeros(t.shape + (2,))  # how much each leg is in an irregular event (0..1)
         for s in range(2):
             psi = sign * (phi + 2 * np.pi * self.spec.offset * s)
             psid, psidd = sign * phid, sign * phidd
@@ -159,7 +161,11 @@ class TrialWorld:
                     x = x + g @ a
                     xd = xd + (g * (-u / w)) @ a
                     xdd = xdd + (g * (u * u - 1) / w ** 2) @ a
+                    # the leg is unloaded over a wider window than the bump itself, so its
+                    # accelerations do not push the pelvis while it still carries weight
+                    lift[:, s] = np.minimum(np.where(near, np.exp(-0.5 * (u / 1.8) ** 2), 0.0).sum(1), 1.0)
                 q[:, s, j], qd[:, s, j], qdd[:, s, j] = np.radians(x), np.radians(xd), np.radians(xdd)
+        self._lift = lift
         return q, qd, qdd, frac
 
     # --- forces and required torques ---------------------------------------------------------
@@ -167,7 +173,17 @@ class TrialWorld:
         """Everything at times t: kinematics, pelvis acceleration, GRF, CoP, tau_tot (T, 2, 2)."""
         t = np.asarray(t, float)
         sp, p = self.spec, self.p
-        q, qd, qdd, frac = self.kinematics(t)
+        q_rel, qd_rel, qdd_rel, frac = self.kinematics(t)
+        # The pelvis tilts forward with the mean hip flexion (the trunk leans into squats and
+        # landings). The chain hangs from the pelvis, so its dynamics depend on the thigh's
+        # absolute angle q_hip - tilt (and its rates); knee and everything relative stay as they are.
+        tilt = np.radians(self.tilt0) + sp.tilt * q_rel[:, :, 0].mean(1)
+        tilt_d = sp.tilt * qd_rel[:, :, 0].mean(1)
+        tilt_dd = sp.tilt * qdd_rel[:, :, 0].mean(1)
+        q, qd, qdd = q_rel.copy(), qd_rel.copy(), qdd_rel.copy()
+        q[:, :, 0] -= tilt[:, None]
+        qd[:, :, 0] -= tilt_d[:, None]
+        qdd[:, :, 0] -= tilt_dd[:, None]
         n = len(t)
         Lf = p.foot_length
         fy = np.zeros((n, 2))
@@ -191,13 +207,24 @@ class TrialWorld:
                 cop_z[:, s] += 0.006 * np.sin(2 * np.pi * sv)
                 point[:, s] = dyn.cop_point(p, q[:, s], cop_x[:, s])
                 # GRF aimed at a point ahead of the hip early in stance, behind it late
-                aim_x = self.gait_offset * np.cos(np.pi * sv)
-                fx[:, s] = fy[:, s] * (aim_x - point[:, s, 0]) / (-point[:, s, 1])
+                # ... and, with a deeply flexed knee, toward the knee (the body's COM moves
+                # forward over the foot; the line does not pass far behind a bent knee)
+                knee_x = dyn.points(p, q[:, s])["knee"][:, 0]
+                aim_x = self.gait_offset * np.cos(np.pi * sv) + 0.5 * np.sin(q[:, s, 1]) ** 2 * knee_x
+                fx[:, s] = np.clip(fy[:, s] * (aim_x - point[:, s, 0]) / (-point[:, s, 1]),
+                                   -0.8 * fy[:, s], 0.8 * fy[:, s])  # friction cone
             a_p[:, 0] = fx.sum(1) / self.Mc
             a_p[:, 1] = fy.sum(1) / self.Mc - G
         else:
-            # both feet down: the pelvis moves as the legs dictate (hip acceleration = minus the
-            # ankle's acceleration relative to the hip, averaged over the two legs)
+            # both feet down, sharing the load (a leg in an irregular event -- catching, twisting --
+            # is lifted and hands its load to the other): the pelvis moves as the loaded legs
+            # dictate (hip acceleration = minus the ankle's acceleration relative to the hip,
+            # weighted by the load shares)
+            w = self.shift(t)
+            # a leg extended behind the body (hip extension, the trailing leg of a lunge) carries less
+            lean_in = 1.0 + 0.8 * np.sin(q_rel[:, :, 0])
+            b = np.stack([(1 + w) / 2, (1 - w) / 2], 1) * lean_in * (1.0 - 0.97 * self._lift)
+            share = b / b.sum(1, keepdims=True)
             acc = np.zeros((n, 2))
             for s in range(2):
                 th1 = q[:, s, 0]
@@ -207,27 +234,37 @@ class TrialWorld:
                 for th, d, dd, l in ((th1, d1, dd1, p.l1), (th2, d2, dd2, p.l2)):
                     u = np.stack([np.sin(th), -np.cos(th)], -1)
                     un = np.stack([np.cos(th), np.sin(th)], -1)
-                    acc += 0.5 * l * (dd[:, None] * un - (d * d)[:, None] * u)
+                    acc += share[:, s, None] * l * (dd[:, None] * un - (d * d)[:, None] * u)
             a_p = -acc
             load = 1.0
             if self.load_coef is not None:
                 phi = self.phase(t)[0]
                 load = self.load_coef[0] + fourier_eval(self.load_coef, phi)[0]
             Wt = self.Mc * (G + a_p[:, 1]) * load
-            Wx = self.Mc * a_p[:, 0] * load
-            w = self.shift(t)
-            for s, share in enumerate(((1 + w) / 2, (1 - w) / 2)):
-                stance[:, s] = True
-                fy[:, s] = np.maximum(Wt * share, 0.0)
+            # the trunk and arms move against the pelvis: the body's COM takes about half of the
+            # pelvis's horizontal acceleration, and that is what the feet must push for
+            Wx = 0.5 * self.Mc * a_p[:, 0] * load
+            for s in range(2):
+                stance[:, s] = share[:, s] > 0.02
+                fy[:, s] = np.maximum(Wt * share[:, s], 0.0)
                 cop_x[:, s] = Lf * (0.45 + 0.08 * self.sway[s](t))
                 point[:, s] = dyn.cop_point(p, q[:, s], cop_x[:, s])
-                fx[:, s] = Wx * share + (self.lean(t) * fy[:, s] if self.lean is not None else 0.0)
+                if sp.grf == "vertical":
+                    fx[:, s] = np.clip(Wx * share[:, s] + (self.lean(t) * fy[:, s] if self.lean is not None else 0.0),
+                                       -0.8 * fy[:, s], 0.8 * fy[:, s])
+                else:  # the force line aims near the hip (lunges: the trailing leg pushes along itself)
+                    knee_x = dyn.points(p, q[:, s])["knee"][:, 0]
+                    aim_x = 0.5 * np.sin(q[:, s, 1]) ** 2 * knee_x
+                    fx[:, s] = np.clip(fy[:, s] * (aim_x - point[:, s, 0]) / (-point[:, s, 1]),
+                                       -0.8 * fy[:, s], 0.8 * fy[:, s])  # friction cone
+            if sp.grf != "vertical":
+                a_p[:, 0] = fx.sum(1) / self.Mc
         g_eff = np.array([0.0, -G]) - a_p
         f = np.stack([fx, fy], axis=-1)
         tau = np.empty((n, 2, 2))
         for s in range(2):
             tau[:, s] = dyn.inverse_dynamics(p, q[:, s], qd[:, s], qdd[:, s], g_eff, f[:, s], point[:, s])
-        return dict(t=t, q=q, qd=qd, qdd=qdd, fy=fy, fx=fx, f=f, point=point, cop_x=cop_x, cop_z=cop_z,
+        return dict(t=t, q=q_rel, qd=qd_rel, qdd=qdd_rel, q_abs=q, qd_abs=qd, qdd_abs=qdd, tilt=tilt, tilt_d=tilt_d, tilt_dd=tilt_dd, fy=fy, fx=fx, f=f, point=point, cop_x=cop_x, cop_z=cop_z,
                     stance=stance, a_p=a_p, g_eff=g_eff, tau_tot=tau)
 
     def exo_command(self, t):

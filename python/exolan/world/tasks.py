@@ -16,7 +16,7 @@ so that the two feet carry the body weight on average over a cycle.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -48,6 +48,7 @@ class TaskSpec:
     cop: tuple = (0.08, 0.85)     # CoP travel heel -> toe, fractions of the foot length
     reverse: bool = False         # the cycle runs backwards (backward walking)
     grf: str = "hip"              # "hip": GRF aims near the hip; "vertical": quasi-static tasks
+    tilt: float = 0.08            # pelvis anterior tilt per rad of mean hip flexion (trunk lean)
     seconds: float = 20.0         # default trial duration
 
 
@@ -78,9 +79,9 @@ TASK_SPECS: dict[str, TaskSpec] = {
     "jump_in_place": TaskSpec(CYCLIC, .65, ((0, 10), (.2, 35), (.45, 8), (.6, 15), (.8, 25), (.95, 12)),
                               ((0, 20), (.2, 65), (.45, 10), (.6, 25), (.8, 35), (.95, 20)),
                               duty=.55, offset=0.0, impact=.5, cop=(.5, .75)),
-    "calisthenics": TaskSpec(CYCLIC, .8, ((0, 5), (.15, 10), (.4, 75), (.6, 40), (.85, 5)),
-                             ((0, 10), (.2, 30), (.45, 100), (.7, 40), (.9, 10)), duty=.55, impact=.25,
-                             rate_var=.15, amp_var=.25, cop=(.4, .8)),
+    "calisthenics": TaskSpec(CYCLIC, 1.0, ((0, 10), (.25, 5), (.45, 8), (.6, 45), (.75, 75), (.9, 35)),
+                             ((0, 15), (.2, 25), (.45, 15), (.6, 60), (.75, 100), (.9, 45)), duty=.5, impact=.25,
+                             rate_var=.15, amp_var=.2, cop=(.4, .8)),
     # --- impedance-like (feet on the ground, the body moves against loads) -----------------
     "stand": TaskSpec(IMPEDANCE, 5.0, ((0, 4), (.5, 7)), ((0, 3), (.5, 6)), rate_var=.3, amp_var=.4,
                       shift=.3, grf="vertical"),
@@ -93,7 +94,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
     "lunge": TaskSpec(IMPEDANCE, 6.0, ((0, 5), (.12, 60), (.25, 75), (.38, 40), (.5, 5), (.62, -5), (.75, -12),
                                        (.88, -5)),
                       ((0, 5), (.12, 60), (.25, 95), (.38, 50), (.5, 5), (.62, 45), (.75, 90), (.88, 40)),
-                      shift=.3, grf="vertical"),
+                      shift=.3, grf="hip"),
     "lift_weight": TaskSpec(IMPEDANCE, 4.0, ((0, 6), (.25, 55), (.5, 100), (.75, 55)),
                             ((0, 4), (.25, 50), (.5, 90), (.75, 50)), offset=0.0, carry=.15, grf="vertical"),
     "push_pull": TaskSpec(IMPEDANCE, 2.0, ((0, 15), (.5, 25)), ((0, 15), (.5, 30)), lean=.15, shift=.3,
@@ -105,7 +106,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
     "poses": TaskSpec(IMPEDANCE, 12.0, ((0, 10), (.25, 60), (.5, 20), (.75, 45)),
                       ((0, 10), (.25, 70), (.5, 30), (.75, 50)), rate_var=.3, shift=.4, grf="vertical"),
     # --- unstructured --------------------------------------------------------------------
-    "ball_toss": TaskSpec(UNSTRUCTURED, 2.5, ((0, 10), (.5, 20)), ((0, 10), (.5, 25)), bumps=(.5, 20, 30, .25),
+    "ball_toss": TaskSpec(UNSTRUCTURED, 2.5, ((0, 10), (.5, 20)), ((0, 10), (.5, 25)), bumps=(.5, 20, 25, .3),
                           shift=.5, rate_var=.3, grf="vertical"),
     "cut": TaskSpec(UNSTRUCTURED, .9, WALK_HIP, WALK_KNEE, duty=.6, k3=.1, impact=.3, rate_var=.2, amp_var=.25,
                     bumps=(.4, 20, 35, .12)),
@@ -114,7 +115,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
     "jump_forward": TaskSpec(UNSTRUCTURED, 1.4, ((0, 20), (.2, 60), (.4, 15), (.6, 5), (.75, 45), (.9, 40)),
                              ((0, 30), (.2, 80), (.4, 15), (.6, 10), (.75, 60), (.9, 50)), duty=.65,
                              offset=0.0, impact=.6, rate_var=.2, cop=(.2, .8)),
-    "start_stop": TaskSpec(UNSTRUCTURED, 1.15, WALK_HIP, WALK_KNEE, duty=.62, k3=.25, rate_var=.45, amp_var=.6),
+    "start_stop": TaskSpec(UNSTRUCTURED, 1.15, WALK_HIP, WALK_KNEE, duty=.62, k3=.25, rate_var=.4, amp_var=.4),
     "meander": TaskSpec(UNSTRUCTURED, 1.15, WALK_HIP, WALK_KNEE, duty=.62, k3=.25, rate_var=.15, amp_var=.15),
     "obstacle_step": TaskSpec(UNSTRUCTURED, 1.15, WALK_HIP, WALK_KNEE, duty=.62, k3=.25, rate_var=.1,
                               bumps=(.3, 30, 45, .15)),
@@ -122,6 +123,11 @@ TASK_SPECS: dict[str, TaskSpec] = {
                         ((0, 10), (.25, 50), (.5, 20), (.75, 40)), rate_var=.35, bumps=(.3, 25, 30, .3),
                         shift=.6, grf="vertical"),
 }
+
+# tasks where the trunk leans forward with hip flexion (squats, landings, lunges, stairs)
+for _name in ("squat", "sit_to_stand", "lift_weight", "jump_in_place", "jump_forward", "poses", "twister",
+              "ball_toss", "lunge", "stairs_up"):
+    TASK_SPECS[_name] = replace(TASK_SPECS[_name], tilt=0.2)
 
 TASKS: dict[str, str] = {name: spec.group for name, spec in TASK_SPECS.items()}
 assert len(TASKS) == 28 and all(t in TASKS for t in PAPER_TRAIN_TASKS)
