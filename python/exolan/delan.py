@@ -95,18 +95,21 @@ def mlp_forward_jac(layers: nn.ModuleList, x: torch.Tensor, dx: torch.Tensor) ->
     x (N, d_in); dx (N, k, n): the derivative of the first k inputs (φ(q)) with respect to q — the
     remaining inputs (z) do not depend on q, so only the first layer's first k columns see dx.
     Returns y (N, d_out), dy/dq (N, d_out, n).
+
+    Internally the Jacobian is carried as n tangent rows (N, n, width), so that every layer's
+    derivative is one plain GEMM, da = dh Wᵀ, over N·n rows (no batched matmul with a broadcast W).
     """
     first = layers[0]
     k = dx.shape[1]
     a = first(x)
-    da = torch.matmul(first.weight[:, :k], dx)          # (N, h, n)
+    da = F.linear(dx.transpose(1, 2), first.weight[:, :k])       # (N, n, h)
     for i in range(1, len(layers)):
         lin = layers[i]
         h = torch.tanh(a)
-        dh = (1.0 - h * h).unsqueeze(-1) * da           # tanh' = 1 − tanh²
+        dh = (1.0 - h * h).unsqueeze(1) * da                      # tanh' = 1 − tanh²
         a = lin(h)
-        da = torch.matmul(lin.weight, dh)
-    return a, da
+        da = F.linear(dh, lin.weight)
+    return a, da.transpose(1, 2)
 
 
 def tril_indices(n: int) -> tuple[list[int], list[int]]:
