@@ -419,12 +419,12 @@ def _cache_dir(root: Path) -> Path:
     if env:
         return Path(env)
     d = root / ".exolan_cache"
-    try:
-        d.mkdir(exist_ok=True)
-        if os.access(d, os.W_OK):
+    if os.access(root, os.W_OK) and (not d.exists() or os.access(d, os.W_OK)):
+        try:
+            d.mkdir(exist_ok=True)
             return d
-    except OSError:
-        pass
+        except OSError:
+            pass
     return Path(os.path.expanduser("~/.cache/exolan"))
 
 

@@ -1,0 +1,293 @@
+"""The dataset reader: round trip, bad input, NaN masking, cache, layout 2, splits, real recordings."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import stat
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exolan.data import (PAPER_TRAIN_TASKS, DataError, Trial, context_channels, context_features, load,
+                         paper_split, stack)
+from exolan.world import make_users, simulate, simulate_trial
+
+
+def _copy(world: Path, dst: Path, subjects=("S01", "S02"), tasks=("walk",)) -> Path:
+    dst.mkdir()
+    lines = world.joinpath("subjects.csv").read_text().splitlines()
+    dst.joinpath("subjects.csv").write_text("\n".join([lines[0]] + [l for l in lines[1:] if l.split(",")[0] in subjects]) + "\n")
+    for s in subjects:
+        for t in tasks:
+            shutil.copytree(world / s / f"{t}_1_1", dst / s / f"{t}_1_1")
+    return dst
+
+
+def _edit_csv(path: Path, fn):
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(fn(lines)) + "\n")
+
+
+def test_round_trip_noise_free(tmp_path):
+    simulate(tmp_path, users=2, tasks=["walk", "squat"], seconds=3, seed=4, noise=False, progress=False)
+    ds = load(tmp_path, cache=False)
+    assert len(ds) == 2 * 2 * 2 and ds.layout == 1
+    users = make_users(2, np.random.default_rng(np.random.SeedSequence([4, 0])))
+    for tr in ds:
+        assert isinstance(tr, Trial) and tr.joints == ("hip", "knee") and tr.dt == pytest.approx(0.005)
+        u = users[int(tr.subject[1:]) - 1]
+        assert tr.mass == u.mass
+        _, _, truth = simulate_trial(u, tr.task, 3, seed=4, noise=False)
+        s = "lr".index(tr.side)
+        np.testing.assert_allclose(tr.q, truth["q"][:, s], atol=1e-13)
+        np.testing.assert_allclose(tr.qd, truth["qd"][:, s], atol=1e-12)
+        np.testing.assert_allclose(tr.tau, truth["tau_h"][:, s] + truth["tau_e_rec"][:, s], atol=1e-9)
+        np.testing.assert_allclose(tr.tau_e, truth["tau_e_rec"][:, s], atol=1e-12)
+        np.testing.assert_allclose(tr.f_v, truth["fy"][:, s], atol=1e-9)
+        swing = truth["fy"][:, s] <= 0
+        assert np.isnan(tr.cop[swing]).all() and np.isfinite(tr.cop[~swing]).all()
+        # Savitzky-Golay acceleration against the analytic one (interior samples)
+        err = tr.qdd[10:-10] - truth["qdd"][10:-10, s]
+        assert np.sqrt(np.mean(err ** 2)) < 0.03 * np.sqrt(np.mean(truth["qdd"][10:-10, s] ** 2)) + 0.05
+        assert tr.valid[5:-5].all()
+
+
+def test_small_world_loads_and_splits(small_world):
+    ds = load(small_world)
+    assert ds.subjects == [f"S0{i}" for i in range(1, 7)]
+    assert len(ds) == 6 * 6 * 2
+    sp = paper_split(ds)
+    assert {t.subject for t in sp.train} == {"S01", "S02", "S03", "S04"}
+    assert {t.subject for t in sp.test_seen} == {"S05", "S06"} == {t.subject for t in sp.test_unseen}
+    assert {t.task for t in sp.train} == {"walk", "stand", "jump_in_place", "cut"} <= set(PAPER_TRAIN_TASKS)
+    assert {t.task for t in sp.test_unseen} == {"squat", "run"}
+    flat = stack(sp.train.trials)
+    n = sum(len(t) for t in sp.train)
+    assert flat["q"].shape == (n, 2) and flat["subject_idx"].shape == (n,)
+    k = 5
+    tr = sp.train[k]
+    sel = flat["trial_idx"] == k
+    np.testing.assert_array_equal(flat["tau"][sel], tr.tau)
+    assert flat["subjects"][flat["subject_idx"][sel][0]] == tr.subject
+    assert flat["tasks"][flat["task_idx"][sel][0]] == tr.task
+
+
+def test_context_features_gate_the_cop(small_world):
+    ds = load(small_world)
+    tr = next(t for t in ds if t.task == "walk")
+    x = context_features(tr)
+    assert context_channels(tr) == ["q_hip", "q_knee", "qd_hip", "qd_knee", "f_v", "cop_x", "cop_z"]
+    assert x.shape == (len(tr), 7)
+    swing = tr.f_v <= 20
+    assert swing.any() and (~swing).any()
+    assert (x[swing, 5:] == 0).all() and np.isfinite(x).all()
+    np.testing.assert_array_equal(x[~swing, 5:], tr.cop[~swing])
+
+
+def test_second_load_comes_from_the_cache_and_changes_invalidate_it(small_world, tmp_path):
+    root = _copy(small_world, tmp_path / "w", tasks=("walk", "run"))
+    t0 = time.perf_counter()
+    a = load(root)
+    t_cold = time.perf_counter() - t0
+    assert list((root / ".exolan_cache").glob("dataset-*.pkl"))
+    t0 = time.perf_counter()
+    b = load(root)
+    t_warm = time.perf_counter() - t0
+    assert t_warm < t_cold
+    np.testing.assert_array_equal(a[0].tau, b[0].tau)
+    # a changed file gives a different dataset, not a stale cache
+    _edit_csv(root / "subjects.csv", lambda ls: [ls[0]] + [l.replace(l.split(",")[1], "99.0") if l.startswith("S01") else l for l in ls[1:]])
+    c = load(root)
+    assert next(t for t in c if t.subject == "S01").mass == 99.0
+
+
+def test_read_only_root_caches_elsewhere(small_world, tmp_path, monkeypatch):
+    """The real data directory is read-only: the cache goes to ~/.cache/exolan instead."""
+    import exolan.data as data
+
+    root = _copy(small_world, tmp_path / "ro")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("EXOLAN_CACHE_DIR", raising=False)
+    if os.geteuid() == 0:  # root can write anywhere: make the root look read-only to the reader
+        real_access = os.access
+        monkeypatch.setattr(data.os, "access",
+                            lambda p, m: False if str(p).startswith(str(root)) else real_access(p, m))
+        mode = None
+    else:
+        mode = root.stat().st_mode
+        root.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        ds = load(root)
+        assert len(ds) == 4
+        assert list((tmp_path / "home" / ".cache" / "exolan").glob("dataset-*.pkl"))
+        assert not (root / ".exolan_cache").exists()
+    finally:
+        if mode is not None:
+            root.chmod(mode)
+
+
+def test_extra_columns_are_ignored(small_world, tmp_path):
+    root = _copy(small_world, tmp_path / "w")
+    p = root / "S01" / "walk_1_1" / "Exo.csv"
+    _edit_csv(p, lambda ls: [ls[0] + ",thigh_imu_l_gyro_x,notes"] + [l + ",0.1,x" for l in ls[1:]])
+    ds = load(root, cache=False)
+    assert len(ds) == 4
+
+
+@pytest.mark.parametrize("case", ["missing_column", "nonuniform_time", "unknown_mass", "radians_angles",
+                                  "radians_both", "empty", "header_only", "text_cell", "moment_time"])
+def test_bad_input_names_file_and_column(small_world, tmp_path, case):
+    root = _copy(small_world, tmp_path / "w")
+    exo = root / "S02" / "walk_1_1" / "Exo.csv"
+    mom = root / "S02" / "walk_1_1" / "Joint_Moments_Filt.csv"
+    if case == "missing_column":
+        def drop(ls, name="knee_angle_r"):
+            i = ls[0].split(",").index(name)
+            return [",".join(c for k, c in enumerate(l.split(",")) if k != i) for l in ls]
+        _edit_csv(exo, drop)
+        expect = ["Exo.csv", "knee_angle_r"]
+    elif case == "nonuniform_time":
+        _edit_csv(exo, lambda ls: ls[:100] + [ls[100].replace(ls[100].split(",")[0], "0.4973", 1)] + ls[101:])
+        expect = ["Exo.csv", "time", "row 100"]
+    elif case == "unknown_mass":
+        _edit_csv(root / "subjects.csv", lambda ls: [l for l in ls if not l.startswith("S02")])
+        expect = ["subjects.csv", "S02", "mass"]
+    elif case in ("radians_angles", "radians_both"):
+        cols = exo.read_text().splitlines()[0].split(",")
+
+        def to_rad(ls):
+            out = [ls[0]]
+            for l in ls[1:]:
+                v = l.split(",")
+                for k, c in enumerate(cols):
+                    if c.endswith(("_angle_l", "_angle_r")) or (case == "radians_both" and c.endswith("_velocity_filt")):
+                        v[k] = repr(float(np.radians(float(v[k]))))
+                out.append(",".join(v))
+            return out
+        _edit_csv(exo, to_rad)
+        expect = ["Exo.csv", "radians", "_angle_"]
+    elif case == "empty":
+        exo.write_text("")
+        expect = ["Exo.csv", "empty"]
+    elif case == "header_only":
+        _edit_csv(mom, lambda ls: ls[:1])
+        expect = ["Joint_Moments_Filt.csv", "empty"]
+    elif case == "text_cell":
+        _edit_csv(mom, lambda ls: ls[:50] + [",".join(ls[50].split(",")[:2] + ["oops"] + ls[50].split(",")[3:])] + ls[51:])
+        expect = ["Joint_Moments_Filt.csv", "knee_angle_l_moment", "row 50"]
+    elif case == "moment_time":
+        _edit_csv(mom, lambda ls: ls[:-10])
+        expect = ["Joint_Moments_Filt.csv", "time"]
+    with pytest.raises(DataError) as ei:
+        load(root)
+    msg = str(ei.value)
+    for e in expect:
+        assert e in msg, (e, msg)
+    assert isinstance(ei.value, ValueError)
+    assert not list((root / ".exolan_cache").glob("dataset-*.pkl")) if (root / ".exolan_cache").exists() else True
+
+
+def test_nan_gaps_are_masked_not_zero_filled(small_world, tmp_path):
+    root = _copy(small_world, tmp_path / "w")
+    mom = root / "S01" / "walk_1_1" / "Joint_Moments_Filt.csv"
+    _edit_csv(mom, lambda ls: ls[:201] + [l.split(",")[0] + ",,,," for l in ls[201:241]] + ls[241:])
+    exo = root / "S01" / "walk_1_1" / "Exo.csv"
+    cols = exo.read_text().splitlines()[0].split(",")
+    blank = {cols.index("hip_angle_l"), cols.index("hip_angle_l_velocity_filt")}
+    _edit_csv(exo, lambda ls: ls[:401] + [",".join("" if k in blank else c for k, c in enumerate(l.split(",")))
+                                          for l in ls[401:411]] + ls[411:])
+    ds = load(root, cache=False)
+    tr = next(t for t in ds if t.subject == "S01" and t.side == "l")
+    assert np.isnan(tr.tau[200:240]).all() and not tr.valid[200:240].any()
+    assert tr.valid[100:199].all()
+    assert np.isnan(tr.q[400:410, 0]).all() and not tr.valid[400:410].any()
+    assert np.isnan(tr.qdd[400:410, 0]).all() and np.isfinite(tr.qdd[400:410, 1]).all()
+    assert tr.valid[380:395].all() and tr.valid[415:430].all()   # Savitzky-Golay per finite stretch
+    assert not (tr.tau[200:240] == 0).any()
+
+
+def test_failed_simulation_leaves_nothing_half_written(tmp_path, monkeypatch):
+    import exolan.world as world
+
+    calls = {"n": 0}
+    real = world.record
+
+    def failing(*a, **k):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise RuntimeError("boom")
+        return real(*a, **k)
+
+    monkeypatch.setattr(world, "record", failing)
+    with pytest.raises(RuntimeError):
+        simulate(tmp_path, users=2, tasks=["walk", "stand"], seconds=1, progress=False)
+    assert not list(tmp_path.rglob(".tmp-*"))
+    written = list(tmp_path.rglob("*.csv"))
+    assert len(written) == 4  # two complete trials, no subjects.csv yet
+    for p in written:
+        assert len(p.read_text().splitlines()) == 201
+
+
+def test_layout2_prismatic_and_revolute(tmp_path):
+    t = np.arange(600) * 0.002
+    x = 0.1 * np.sin(2 * np.pi * 1.5 * t)
+    th = 0.8 * np.cos(2 * np.pi * 0.7 * t)
+    cols = {"time": t, "q_slide": x, "q_arm": th, "tau_slide": 5 * x, "tau_arm": np.sin(th)}
+    lines = [",".join(cols)] + [",".join(repr(float(v)) for v in row) for row in zip(*cols.values())]
+    (tmp_path / "bench.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "bench.json").write_text(json.dumps({"joints": [{"name": "slide", "type": "prismatic"},
+                                                                {"name": "arm", "type": "revolute"}],
+                                                     "units": {"q": "m", "tau": "N"}}))
+    ds = load(tmp_path / "bench.csv")
+    assert ds.layout == 2 and len(ds) == 1
+    tr = ds[0]
+    assert tr.joint_types == ("prismatic", "revolute") and tr.side == "" and tr.mass == 1.0
+    assert tr.dt == pytest.approx(0.002)
+    xd = 0.1 * 2 * np.pi * 1.5 * np.cos(2 * np.pi * 1.5 * t)
+    np.testing.assert_allclose(tr.qd[10:-10, 0], xd[10:-10], rtol=0, atol=1e-4)
+    xdd = -0.1 * (2 * np.pi * 1.5) ** 2 * np.sin(2 * np.pi * 1.5 * t)
+    np.testing.assert_allclose(tr.qdd[20:-20, 0], xdd[20:-20], atol=2e-3)
+    assert context_channels(tr) == ["q_slide", "q_arm", "qd_slide", "qd_arm"]
+    assert context_features(tr).shape == (600, 4)
+    assert (tr.f_v == 0).all() and tr.valid[10:-10].all()
+    # the directory form finds the same recording
+    assert len(load(tmp_path)) == 1
+    (tmp_path / "bench.json").unlink()
+    with pytest.raises(DataError, match="bench.json"):
+        load(tmp_path / "bench.csv")
+
+
+def test_missing_path_and_unknown_layout(tmp_path):
+    with pytest.raises(DataError, match="no such"):
+        load(tmp_path / "nope")
+    (tmp_path / "S01" / "walk_1_1").mkdir(parents=True)
+    (tmp_path / "S01" / "walk_1_1" / "Exo.csv").write_text("time\n0\n")
+    with pytest.raises(DataError, match="subjects.csv"):
+        load(tmp_path)
+
+
+def test_real_recordings_load(real_data):
+    ds = load(real_data)
+    assert ds.subjects == ["REAL01", "REAL02", "REAL03", "REAL04", "REAL05"]
+    assert np.isnan(ds.heights["REAL05"]) and ds.masses["REAL05"] == 67.2
+    # REAL05's left side was never measured: left out, and said so
+    assert [k for k, _ in ds.skipped] == ["REAL05/walk_treadmill_1_1/l"]
+    assert len(ds) == 2 * 28 - 1
+    for tr in ds:
+        assert tr.valid.any()
+        assert np.isnan(tr.tau[~tr.valid]).any(axis=1).all() or not np.isfinite(tr.qdd[~tr.valid]).all() \
+            or not np.isfinite(tr.q[~tr.valid]).all() or not np.isfinite(tr.f_v[~tr.valid]).all()
+        assert (tr.tau_e == 0).all()          # nobody wore an exoskeleton
+        swing = tr.f_v < 50
+        assert np.isnan(tr.cop[swing]).all()  # CoP undefined in swing
+        x = context_features(tr)
+        assert np.isfinite(x[tr.valid, :5]).all()
+    sts = next(t for t in ds if t.name == "sit_to_stand_1_1" and t.side == "r")
+    assert 0.4 < sts.valid.mean() < 0.7        # hip moments masked while seated
+    walk = next(t for t in ds if t.subject == "REAL04" and t.side == "r")
+    assert -1.0 < np.nanmin(walk.tau[:, 1]) / walk.mass < -0.3
+    sp = paper_split(ds)
+    assert {t.subject for t in sp.test_seen} | {t.subject for t in sp.test_unseen} <= {"REAL04", "REAL05"}
