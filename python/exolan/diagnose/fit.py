@@ -1,0 +1,282 @@
+"""Data preparation, the slow-context base model and the joint (warm-start) refits of the diagnosis.
+
+Why a slow context: a context encoder that sees a 315 ms window of q, q̇ and forces can make g(q, z) and
+B(q, z) f_v vary within a stride and imitate damping, friction or lag (DIAGNOSIS_PITFALLS.md). The
+diagnosis therefore judges a DeLaN + LIM whose context z is a *learned constant per trial* (one code per
+recording, e.g. one user's leg in one task): it carries body size, mass and the trial's mean loading, but
+cannot carry q̇ within a step. A given run (`--model`) is used the same way: its encoder's z is pooled
+(averaged) over each trial and frozen.
+
+Why held-out *time*: every trial is cut into contiguous segments; one segment in four (rotating phase per
+trial) is held out. The model is tested where it was trained (same user, same task, same loads) but on
+samples it never fitted, so a gain measures the planted physics, not extrapolation to unseen loads.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..delan import Lagrangian, forward_dynamics as _fd, inverse_dynamics as _id, energy as _energy
+from ..lim import LIM
+from ..extensions import ExtendedModel, exo_derivatives, lag_table
+
+DTYPE = torch.float32   # diagnosis fits run in float32 (speed); export converts to float64
+
+
+@dataclass
+class Flat:
+    """All samples of a dataset stacked, with the held-out mask and the exo-torque histories."""
+    q: torch.Tensor
+    qd: torch.Tensor
+    qdd: torch.Tensor
+    tau: torch.Tensor
+    tau_e: torch.Tensor
+    tau_e_d: torch.Tensor
+    tau_e_dd: torch.Tensor
+    f_v: torch.Tensor
+    mass: torch.Tensor
+    valid: torch.Tensor
+    trial: torch.Tensor       # (N,) trial index
+    segment: torch.Tensor     # (N,) global segment index (held-out blocks)
+    held: torch.Tensor        # (N,) bool: held-out time segment
+    lag: torch.Tensor         # (N, K+1) flat indices k samples earlier (same trial)
+    lengths: list[int]
+    joints: tuple[str, ...]
+    joint_types: tuple[str, ...]
+    dt: float
+    trial_meta: list[dict]    # subject, task, name, side per trial
+    has_exo: bool
+    has_insole: bool
+    tau_scale: np.ndarray = field(default_factory=lambda: np.ones(1))   # per-joint std of τ/m (train)
+
+    @property
+    def n(self) -> int:
+        return self.q.shape[1]
+
+    def index(self, which: str) -> torch.Tensor:
+        """Valid sample indices of 'train', 'held' or 'all'."""
+        m = self.valid.clone()
+        if which == "train":
+            m &= ~self.held
+        elif which == "held":
+            m &= self.held
+        return torch.nonzero(m, as_tuple=False)[:, 0]
+
+    def exo_hist(self, idx: torch.Tensor):
+        """(B, K+1, n) histories of τ_e, τ̇_e, τ̈_e for the rows idx."""
+        lg = self.lag[idx]
+        return self.tau_e[lg], self.tau_e_d[lg], self.tau_e_dd[lg]
+
+
+def _segments(T: int, dt: float, seg_seconds: float, rng: np.random.Generator, every: int):
+    """Segment id per sample and whether it is held out: ~seg_seconds blocks, one in `every` held out."""
+    L = max(int(round(seg_seconds / dt)), 20)
+    nseg = max(int(math.ceil(T / L)), 1)
+    if nseg < 2:          # a very short trial: cut it in two halves so that it contributes to both sides
+        nseg = 2 if T >= 40 else 1
+    bounds = np.linspace(0, T, nseg + 1).astype(int)
+    seg = np.zeros(T, dtype=np.int64)
+    for k in range(nseg):
+        seg[bounds[k]:bounds[k + 1]] = k
+    phase = int(rng.integers(every))
+    held_seg = np.array([(k + phase) % every == 0 for k in range(nseg)])
+    if nseg >= 2 and held_seg.all():
+        held_seg[1:] = False
+    if nseg >= 2 and not held_seg.any():
+        held_seg[nseg // 2] = True
+    return seg, held_seg[seg] if nseg >= 2 else np.zeros(T, dtype=bool)
+
+
+def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_delay: float = 0.1,
+            seed: int = 0) -> Flat:
+    """Stack trials (DESIGN.md section 1 `Trial`s, duck-typed) into a `Flat`."""
+    if not trials:
+        raise ValueError("diagnosis needs at least one trial")
+    t0 = trials[0]
+    joints, jtypes, dt = tuple(t0.joints), tuple(t0.joint_types), float(t0.dt)
+    for t in trials:
+        if tuple(t.joints) != joints or abs(float(t.dt) - dt) > 1e-9:
+            raise ValueError(f"trial {t.subject}/{t.name}: joints or sample time differ from the first trial")
+    rng = np.random.default_rng(seed)
+    K = int(math.ceil(max_delay / dt)) + 1
+    cols = {k: [] for k in ("q", "qd", "qdd", "tau", "tau_e", "tau_e_d", "tau_e_dd", "f_v", "mass", "valid",
+                            "trial", "segment", "held")}
+    seg_base = 0
+    lengths, meta = [], []
+    for i, t in enumerate(trials):
+        T = np.asarray(t.q).shape[0]
+        lengths.append(T)
+        n = len(joints)
+        tau_e = np.asarray(t.tau_e, dtype=np.float64) if getattr(t, "tau_e", None) is not None else np.zeros((T, n))
+        d1, d2 = exo_derivatives(tau_e, dt)
+        seg, held = _segments(T, dt, seg_seconds, rng, every)
+        f_v = np.asarray(t.f_v, dtype=np.float64) if getattr(t, "f_v", None) is not None else np.zeros(T)
+        valid = np.asarray(t.valid, dtype=bool).copy() if getattr(t, "valid", None) is not None else np.ones(T, bool)
+        for name in ("q", "qd", "qdd", "tau"):
+            valid &= np.isfinite(np.asarray(getattr(t, name))).all(axis=1)
+        valid &= np.isfinite(f_v) & np.isfinite(tau_e).all(axis=1)
+        cols["q"].append(np.asarray(t.q)); cols["qd"].append(np.asarray(t.qd)); cols["qdd"].append(np.asarray(t.qdd))
+        cols["tau"].append(np.asarray(t.tau)); cols["tau_e"].append(np.nan_to_num(tau_e))
+        cols["tau_e_d"].append(d1); cols["tau_e_dd"].append(d2); cols["f_v"].append(np.nan_to_num(f_v))
+        cols["mass"].append(np.full(T, float(t.mass))); cols["valid"].append(valid)
+        cols["trial"].append(np.full(T, i)); cols["segment"].append(seg + seg_base); cols["held"].append(held)
+        seg_base += int(seg.max()) + 1
+        meta.append(dict(subject=str(t.subject), task=str(t.task), name=str(t.name), side=str(getattr(t, "side", ""))))
+    cat = {k: np.concatenate(v, axis=0) for k, v in cols.items()}
+    f = lambda k: torch.as_tensor(np.nan_to_num(cat[k]), dtype=DTYPE)
+    flat = Flat(q=f("q"), qd=f("qd"), qdd=f("qdd"), tau=f("tau"), tau_e=f("tau_e"), tau_e_d=f("tau_e_d"),
+                tau_e_dd=f("tau_e_dd"), f_v=f("f_v"), mass=f("mass"),
+                valid=torch.as_tensor(cat["valid"]), trial=torch.as_tensor(cat["trial"]),
+                segment=torch.as_tensor(cat["segment"]), held=torch.as_tensor(cat["held"]),
+                lag=torch.as_tensor(lag_table(lengths, K)), lengths=lengths, joints=joints, joint_types=jtypes,
+                dt=dt, trial_meta=meta, has_exo=bool(np.abs(cat["tau_e"]).max() > 0),
+                has_insole=bool(np.abs(cat["f_v"]).max() > 0))
+    tr = flat.index("train")
+    s = (flat.tau[tr] / flat.mass[tr, None]).std(0).numpy()
+    flat.tau_scale = np.where(s > 1e-9, s, 1.0)
+    return flat
+
+
+class SlowContextDeLaN(nn.Module):
+    """DeLaN (+ LIM) with a learned constant context code per trial: z cannot carry q̇ within a step.
+
+    Same networks as the project's DeLaN (`exolan.delan.Lagrangian`, `exolan.lim.LIM`); the caller passes
+    z = codes[trial] to `inverse` / `forward_dynamics` (the interface of DESIGN.md section 2).
+    """
+
+    def __init__(self, joint_types, n_trials: int, z_dim: int = 4, hidden: int = 64, lim: bool = True,
+                 v_scale: float = 1.0, lim_scale: float = 0.1):
+        super().__init__()
+        self.delan = Lagrangian(joint_types, z_dim, hidden, softplus_offset=1e-2, v_scale=v_scale)
+        self.lim = LIM(joint_types, z_dim, 16, lim_scale) if lim else None
+        self.codes = nn.Embedding(n_trials, z_dim)
+        nn.init.normal_(self.codes.weight, std=0.01)
+        self.z_dim = z_dim
+
+    def z_of(self, trial_idx: torch.Tensor) -> torch.Tensor:
+        return self.codes(trial_idx)
+
+    def inverse(self, q, qd, qdd, z, f_v):
+        tau = _id(self.delan, q, qd, qdd, z)
+        if self.lim is not None:
+            tau = tau - self.lim.contact_torque(q, z, f_v)
+        return tau
+
+    def forward_dynamics(self, q, qd, tau, z, f_v):
+        rhs = tau + self.lim.contact_torque(q, z, f_v) if self.lim is not None else tau
+        return _fd(self.delan, q, qd, rhs, z)
+
+    def terms(self, q, qd, z):
+        return self.delan.terms(q, qd, z)
+
+    def energy(self, q, qd, z):
+        return _energy(self.delan, q, qd, z)
+
+
+class PooledContext(nn.Module):
+    """A trained run's model with its context pooled (averaged) per trial and frozen — a slow context."""
+
+    def __init__(self, model: nn.Module, z_trials: torch.Tensor):
+        super().__init__()
+        self.model = model
+        self.register_buffer("z_trials", z_trials)
+
+    def z_of(self, trial_idx):
+        return self.z_trials[trial_idx]
+
+    def inverse(self, q, qd, qdd, z, f_v):
+        return self.model.inverse(q, qd, qdd, z, f_v)
+
+    def forward_dynamics(self, q, qd, tau, z, f_v):
+        return self.model.forward_dynamics(q, qd, tau, z, f_v)
+
+    def terms(self, q, qd, z):
+        return self.model.terms(q, qd, z)
+
+    def energy(self, q, qd, z):
+        return self.model.energy(q, qd, z)
+
+
+def make_base(flat: Flat, hidden: int = 64, z_dim: int = 4, seed: int = 0) -> SlowContextDeLaN:
+    torch.manual_seed(seed)
+    tr = flat.index("train")
+    # v_scale: one network unit of ∂V/∂q ≈ the torque spread; lim_scale: lever arms of ~0.1 m (or the
+    # torque spread per unit insole force where that is larger)
+    v_scale = float(flat.tau[tr].std(0).max().clamp(min=1e-3))
+    m = SlowContextDeLaN(flat.joint_types, len(flat.lengths), z_dim, hidden, lim=flat.has_insole,
+                         v_scale=v_scale, lim_scale=0.1)
+    return m.to(DTYPE)
+
+
+def _base_of(model: nn.Module) -> nn.Module:
+    return model.base if isinstance(model, ExtendedModel) else model
+
+
+def predict(model: nn.Module, flat: Flat, idx: torch.Tensor, chunk: int = 16384) -> torch.Tensor:
+    """Predicted recorded torque at rows idx (no grad)."""
+    out = []
+    base = _base_of(model)
+    with torch.no_grad():
+        for s in range(0, len(idx), chunk):
+            out.append(_forward(model, base, flat, idx[s:s + chunk]))
+    return torch.cat(out, 0) if out else flat.tau[:0]
+
+
+def _forward(model, base, flat: Flat, b: torch.Tensor) -> torch.Tensor:
+    z = base.z_of(flat.trial[b])
+    if isinstance(model, ExtendedModel):
+        he, hd, hdd = flat.exo_hist(b)
+        return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.f_v[b], he, hd, hdd)
+    return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.f_v[b])
+
+
+def sq_errors(model, flat: Flat, idx: torch.Tensor) -> np.ndarray:
+    """Per-sample mass-normalised squared torque error, summed over joints ((N m/kg)²) — and per joint."""
+    e = (predict(model, flat, idx) - flat.tau[idx]) / flat.mass[idx, None]
+    return (e ** 2).numpy().astype(np.float64)
+
+
+def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: float = 3e-2,
+          batch: int = 4096, seed: int = 0, weight_decay: float = 0.0, progress=None) -> list[float]:
+    """Minimise the mass-normalised torque MSE (per-joint scaled) on the training segments.
+
+    Adam with minibatches; the extension's physical scalars get their own (larger) step because they are
+    few and well scaled. Returns the loss history (every step).
+    """
+    g = torch.Generator().manual_seed(seed)
+    tr = flat.index("train")
+    base = _base_of(model)
+    scale = torch.as_tensor(flat.tau_scale, dtype=DTYPE)
+    if isinstance(model, ExtendedModel):
+        groups = [{"params": model.base_parameters(), "lr": lr, "weight_decay": weight_decay},
+                  {"params": model.ext_parameters(), "lr": lr_ext, "weight_decay": 0.0}]
+    else:
+        groups = [{"params": list(model.parameters()), "lr": lr, "weight_decay": weight_decay}]
+    opt = torch.optim.Adam(groups)
+    # cosine decay: the last steps settle the physical parameters instead of jittering around them
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=0.05 * lr)
+    hist = []
+    for step in range(steps):
+        b = tr[torch.randint(len(tr), (min(batch, len(tr)),), generator=g)]
+        pred = _forward(model, base, flat, b)
+        r = (pred - flat.tau[b]) / (flat.mass[b, None] * scale)
+        loss = (r ** 2).sum(-1).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sched.step()
+        hist.append(float(loss))
+        if progress is not None:
+            progress(step, float(loss))
+    return hist
+
+
+def extend(base: nn.Module, flat: Flat, effects, init: dict | None = None, max_delay: float = 0.1) -> ExtendedModel:
+    """A deep copy of `base` wrapped with the section-4 terms (warm start: the base's weights as fitted)."""
+    return ExtendedModel(copy.deepcopy(base), flat.n, effects, dt=flat.dt, max_delay=max_delay, init=init)

@@ -1,0 +1,342 @@
+"""Model extensions found by diagnosis: dissipation, actuation delay, sensor and strap corrections.
+
+A conservative Lagrangian (H q̈ + c + g = τ + B f_v) cannot represent friction, delays or compliance. This
+module wraps any DeLaN-based model of DESIGN.md section 2 and adds the terms of DESIGN.md section 4 *inside
+the physics*, each with a parametrisation that enforces its physical sign:
+
+| effect             | enters as                                              | constraint              |
+|--------------------|--------------------------------------------------------|-------------------------|
+| viscous_damping    | τ += D q̇, D = L_D L_Dᵀ                                 | D PSD (Cholesky factor) |
+| coulomb_friction   | τ += Fc ⊙ tanh(q̇/ε)                                    | Fc = softplus(·) ≥ 0    |
+| stribeck_friction  | τ += Fs e^{−(q̇/vs)²} tanh(q̇/ε)                        | Fs ≥ 0, vs > 0          |
+| actuation_delay    | τ_rec += τ_e(t) − τ_e(t−d), fractional linear shift    | 0 ≤ d ≤ max_delay       |
+| encoder_offset     | physics at q_meas − δ                                  | free sign               |
+| torque_bias        | τ_rec += τ0                                            | free sign               |
+| torque_gain        | τ_rec += (1 − 1/k) τ_e,rec                             | k > 0                   |
+| strap_compliance   | physics at q_meas − τ_e,app / k (and its derivatives)  | 1/k = softplus(·) ≥ 0   |
+
+Because D is PSD and Fc, Fs ≥ 0, the dissipated power q̇ᵀ(D q̇ + Fc tanh(q̇/ε) + ...) is never negative:
+the extended model is passive — its energy ½ q̇ᵀ H q̇ + V never grows without input power
+(`dissipated_power`, tested).
+
+Sequences: the delay needs the history of the exoskeleton torque. Samples are rows (B, ·); the exo torque
+comes either as (B, n) (current sample) or as a history (B, K+1, n), column k = k steps earlier in the same
+trial, clamped at the trial's start (`lag_table(lengths, K)` gives the flat indices to gather it). The strap
+needs τ̇_e and τ̈_e, which the caller passes in the same form (`exo_derivatives` computes them per trial).
+"""
+from __future__ import annotations
+
+import math
+from typing import Iterable, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+import torch.nn.functional as F
+
+EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay",
+                    "encoder_offset", "torque_bias", "torque_gain", "strap_compliance")
+COULOMB_EPS = 0.01   # rad/s (or m/s): the tanh smoothing of sign(q̇), the same in the world and the engine
+
+
+def _inv_softplus(y: float) -> float:
+    return float(y + math.log(-math.expm1(-y)))
+
+
+def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
+    """(N, max_lag+1) flat indices of the sample k steps earlier in the same trial (clamped at its start)."""
+    out = []
+    start = 0
+    for T in lengths:
+        t = np.arange(T)
+        k = np.arange(max_lag + 1)
+        out.append(start + np.maximum(t[:, None] - k[None, :], 0))
+        start += T
+    return np.concatenate(out, axis=0) if out else np.zeros((0, max_lag + 1), dtype=np.int64)
+
+
+def exo_derivatives(tau_e: np.ndarray, dt: float, window: int = 9) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothed first and second time derivatives of one trial's recorded exo torque (T, n).
+
+    A Savitzky-Golay derivative (cubic, `window` samples = 45 ms at 200 Hz) — the same family of filter the
+    reader uses for q̈ — so the strap correction of q̇ and q̈ is as smooth as the measured ones. NaN samples
+    are zeroed here only for the filter; the caller's `valid` mask keeps them out of every loss.
+    """
+    from scipy.signal import savgol_filter
+
+    x = np.nan_to_num(np.asarray(tau_e, dtype=np.float64))
+    T = x.shape[0]
+    w = min(window, T if T % 2 == 1 else T - 1)
+    if w < 5:
+        d1 = np.gradient(x, dt, axis=0) if T > 1 else np.zeros_like(x)
+        d2 = np.gradient(d1, dt, axis=0) if T > 1 else np.zeros_like(x)
+        return d1, d2
+    d1 = savgol_filter(x, w, 3, deriv=1, delta=dt, axis=0)
+    d2 = savgol_filter(x, w, 3, deriv=2, delta=dt, axis=0)
+    return d1, d2
+
+
+class ExtendedModel(nn.Module):
+    """A base DeLaN-type model plus the section-4 terms on chosen joints.
+
+    `effects`: iterable of (effect, joint index) pairs; an effect may appear on several joints (damping on
+    several joints gives a full PSD matrix over those joints). `dt` is the sample time (delay in samples),
+    `max_delay` (s) bounds the delay (the lag table must reach max_delay/dt + 1 samples).
+    The base model's parameters stay trainable: `ext_parameters()` and `base_parameters()` separate the
+    groups so that a joint refit can use a larger step for the few physical scalars.
+    """
+
+    def __init__(self, base: nn.Module, n: int, effects: Iterable[tuple[str, int]] = (), dt: float = 0.005,
+                 max_delay: float = 0.1, coulomb_eps: float = COULOMB_EPS, init: dict | None = None):
+        super().__init__()
+        self.base = base
+        self.n = int(n)
+        self.dt = float(dt)
+        self.max_delay = float(max_delay)
+        self.coulomb_eps = float(coulomb_eps)
+        self.effects: dict[str, list[int]] = {}
+        for eff, j in effects:
+            if eff not in EFFECTS_MODELLED:
+                raise ValueError(f"effect {eff!r} cannot be modelled (modelled: {', '.join(EFFECTS_MODELLED)})")
+            if not 0 <= int(j) < self.n:
+                raise ValueError(f"joint index {j} out of range for {self.n} joints")
+            self.effects.setdefault(eff, [])
+            if int(j) not in self.effects[eff]:
+                self.effects[eff].append(int(j))
+        init = dict(init or {})
+        n = self.n
+        dtype = next(base.parameters()).dtype if any(True for _ in base.parameters()) else torch.float64
+
+        def mask(eff):
+            m = torch.zeros(n, dtype=dtype)
+            m[self.effects.get(eff, [])] = 1.0
+            return m
+
+        for eff in EFFECTS_MODELLED:
+            self.register_buffer(f"mask_{eff}", mask(eff))
+        # Raw (unconstrained) parameters. Initial values are small but not zero so that gradients of
+        # softplus-squared terms do not vanish; `init` (physical units) overrides them for warm starts.
+        sp = _inv_softplus
+        d0 = init.get("viscous_damping", 0.05)
+        self.damping_diag = nn.Parameter(torch.full((n,), sp(math.sqrt(d0)), dtype=dtype))
+        self.damping_off = nn.Parameter(torch.zeros(n, n, dtype=dtype))
+        self.coulomb_raw = nn.Parameter(torch.full((n,), sp(init.get("coulomb_friction", 0.05)), dtype=dtype))
+        self.stribeck_fs_raw = nn.Parameter(torch.full((n,), sp(init.get("stribeck_friction", 0.05)), dtype=dtype))
+        self.stribeck_vs_raw = nn.Parameter(torch.full((n,), sp(init.get("stribeck_vs", 0.1)), dtype=dtype))
+        # delay in samples, as a fraction of the maximum through a sigmoid: bounded on both sides
+        frac0 = min(max(init.get("actuation_delay", self.dt) / self.max_delay, 1e-3), 1 - 1e-3)
+        self.delay_raw = nn.Parameter(torch.full((n,), math.log(frac0 / (1 - frac0)), dtype=dtype))
+        self.offset_raw = nn.Parameter(torch.full((n,), init.get("encoder_offset", 0.0) / 0.01, dtype=dtype))
+        self.bias_raw = nn.Parameter(torch.full((n,), float(init.get("torque_bias", 0.0)), dtype=dtype))
+        k0 = float(init.get("torque_gain", 1.0))
+        self.gain_raw = nn.Parameter(torch.full((n,), (1.0 - 1.0 / k0) / 0.1, dtype=dtype))
+        # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
+        c0 = 1.0 / float(init.get("strap_compliance", 1000.0))
+        self.compliance_raw = nn.Parameter(torch.full((n,), sp(max(c0 / 0.01, 1e-4)), dtype=dtype))
+
+    # -- physical parameters -----------------------------------------------------------------------
+    def damping_matrix(self) -> torch.Tensor:
+        """D = L_D L_Dᵀ restricted to the damped joints: PSD by construction."""
+        m = self.mask_viscous_damping
+        Lm = torch.tril(self.damping_off, -1) * (m[:, None] * m[None, :])
+        Lm = Lm + torch.diag(F.softplus(self.damping_diag) * m)
+        return Lm @ Lm.T
+
+    def coulomb(self) -> torch.Tensor:
+        return F.softplus(self.coulomb_raw) * self.mask_coulomb_friction
+
+    def stribeck(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return (F.softplus(self.stribeck_fs_raw) * self.mask_stribeck_friction,
+                F.softplus(self.stribeck_vs_raw) + 1e-3)
+
+    def delay(self) -> torch.Tensor:
+        """Seconds, in [0, max_delay]."""
+        return torch.sigmoid(self.delay_raw) * self.max_delay * self.mask_actuation_delay
+
+    def encoder_offset(self) -> torch.Tensor:
+        return 0.01 * self.offset_raw * self.mask_encoder_offset
+
+    def torque_bias(self) -> torch.Tensor:
+        return self.bias_raw * self.mask_torque_bias
+
+    def gain_term(self) -> torch.Tensor:
+        """a = 1 − 1/k: the recorded exo torque's excess over the applied one, per unit recorded torque."""
+        return 0.1 * self.gain_raw * self.mask_torque_gain
+
+    def compliance(self) -> torch.Tensor:
+        """1/k in rad/(N m) (m/N for prismatic joints); 0 where no strap term is active."""
+        return 0.01 * F.softplus(self.compliance_raw) * self.mask_strap_compliance
+
+    def physical(self) -> dict[str, np.ndarray]:
+        """Every parameter in the units of the effect vocabulary (DATA_LAYOUT.md), per joint."""
+        with torch.no_grad():
+            fs, vs = self.stribeck()
+            c = self.compliance()
+            a = self.gain_term()
+            return {
+                "viscous_damping": self.damping_matrix().cpu().numpy().copy(),
+                "coulomb_friction": self.coulomb().cpu().numpy().copy(),
+                "stribeck_friction": fs.cpu().numpy().copy(),
+                "stribeck_vs": vs.cpu().numpy().copy(),
+                "actuation_delay": self.delay().cpu().numpy().copy(),
+                "encoder_offset": self.encoder_offset().cpu().numpy().copy(),
+                "torque_bias": self.torque_bias().cpu().numpy().copy(),
+                "torque_gain": (1.0 / (1.0 - a)).cpu().numpy().copy(),
+                "strap_compliance": np.where(c.cpu().numpy() > 0, 1.0 / np.maximum(c.cpu().numpy(), 1e-300),
+                                             np.inf),
+            }
+
+    def estimate(self, effect: str, joint: int) -> float:
+        """The scalar parameter that the vocabulary reports for (effect, joint)."""
+        p = self.physical()
+        if effect == "viscous_damping":
+            return float(p[effect][joint, joint])
+        return float(p[effect][joint])
+
+    def ext_parameters(self) -> list[nn.Parameter]:
+        base_ids = {id(p) for p in self.base.parameters()}
+        return [p for p in self.parameters() if id(p) not in base_ids]
+
+    def base_parameters(self) -> list[nn.Parameter]:
+        return list(self.base.parameters())
+
+    # -- pieces of the physics ---------------------------------------------------------------------
+    @staticmethod
+    def _hist(x):
+        """(B, n) -> (B, 1, n); (B, K+1, n) stays: column k is the sample k steps earlier."""
+        return None if x is None else (x.unsqueeze(1) if x.dim() == 2 else x)
+
+    def _shift(self, hist: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """x(t − d) per joint by linear interpolation between the two bracketing samples of the history."""
+        K = hist.shape[1] - 1
+        if K < 1:
+            raise ValueError("a delay needs the exo-torque history (B, K+1, n) with K >= 1")
+        s = torch.clamp(d / self.dt, 0.0, K - 1e-9)          # (n,) samples
+        k0 = torch.floor(s).detach()
+        frac = s - k0                                          # differentiable in d
+        k0 = k0.long()
+        B, _, n = hist.shape
+        i0 = k0.view(1, 1, n).expand(B, 1, n)
+        x0 = torch.gather(hist, 1, i0)[:, 0]
+        x1 = torch.gather(hist, 1, i0 + 1)[:, 0]
+        return (1.0 - frac) * x0 + frac * x1
+
+    def applied_exo(self, tau_e, tau_e_d=None, tau_e_dd=None):
+        """τ_e,app and its derivatives at the current sample, from (B, n) or history (B, K+1, n) inputs.
+
+        The applied torque is the recorded one delayed by d where the delay term is active.
+        """
+        h, hd, hdd = self._hist(tau_e), self._hist(tau_e_d), self._hist(tau_e_dd)
+        now = lambda x: None if x is None else x[:, 0]
+        if "actuation_delay" not in self.effects:
+            return now(h), now(hd), now(hdd)
+        d = self.delay()
+        m = self.mask_actuation_delay
+        sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * x[:, 0]
+        return sh(h), sh(hd), sh(hdd)
+
+    def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None):
+        """Measured -> physical coordinates: remove the encoder offset and the strap deflection."""
+        if "encoder_offset" in self.effects:
+            q = q - self.encoder_offset()
+        if "strap_compliance" in self.effects and tau_app is not None:
+            c = self.compliance()
+            q = q - c * tau_app
+            if tau_app_d is not None:
+                qd = qd - c * tau_app_d
+            if tau_app_dd is not None and qdd is not None:
+                qdd = qdd - c * tau_app_dd
+        return q, qd, qdd
+
+    def friction(self, qd: torch.Tensor) -> torch.Tensor:
+        """Generalised dissipative force (the torque the actuators must add to overcome it)."""
+        out = torch.zeros_like(qd)
+        if "viscous_damping" in self.effects:
+            out = out + qd @ self.damping_matrix().T
+        sgn = torch.tanh(qd / self.coulomb_eps)
+        if "coulomb_friction" in self.effects:
+            out = out + self.coulomb() * sgn
+        if "stribeck_friction" in self.effects:
+            fs, vs = self.stribeck()
+            out = out + fs * torch.exp(-(qd / vs) ** 2) * sgn
+        return out
+
+    def dissipated_power(self, qd: torch.Tensor) -> torch.Tensor:
+        """q̇ᵀ friction(q̇) (...,): never negative (passivity)."""
+        return (qd * self.friction(qd)).sum(-1)
+
+    def recording_terms(self, tau_e, tau_app) -> torch.Tensor:
+        """τ_rec − τ_physical: what the recorded total torque holds beyond the torque the limb feels."""
+        out = torch.zeros_like(tau_e)
+        if "actuation_delay" in self.effects:
+            out = out + (tau_e - tau_app) * self.mask_actuation_delay
+        if "torque_bias" in self.effects:
+            out = out + self.torque_bias()
+        if "torque_gain" in self.effects:
+            out = out + self.gain_term() * tau_e
+        return out
+
+    # -- the model interface -----------------------------------------------------------------------
+    def inverse(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None):
+        """Predicted recorded total torque τ_rec (B, n).
+
+        tau_e, tau_e_d, tau_e_dd: recorded exo torque and its smoothed derivatives, either (B, n) for the
+        current sample or (B, K+1, n) histories (column k = k samples earlier, clamped at the trial start;
+        `lag_table` builds the indices). The delay term needs the history.
+        """
+        if tau_e is None:
+            tau_e = torch.zeros_like(q)
+        tau_now = self._hist(tau_e)[:, 0]
+        tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd)
+        qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd)
+        tau = self.base.inverse(qt, qdt, qddt, z, f_v)
+        return tau + self.friction(qdt) + self.recording_terms(tau_now, tau_app)
+
+    def forward_dynamics(self, q, qd, tau, z, f_v, tau_e=None, tau_app=None):
+        """q̈ in *physical* coordinates (q, q̇ physical) for the recorded total torque τ.
+
+        τ_phys = τ − recording terms; the friction opposes q̇. `tau_app` (delayed exo torque) defaults to
+        τ_e (no delay).
+        """
+        if tau_e is None:
+            tau_e = torch.zeros_like(q)
+        if tau_app is None:
+            tau_app = tau_e
+        tau_phys = tau - self.recording_terms(tau_e, tau_app) - self.friction(qd)
+        return self.base.forward_dynamics(q, qd, tau_phys, z, f_v)
+
+    def terms(self, q, qd, z):
+        return self.base.terms(q, qd, z)
+
+    def context(self, x):
+        return self.base.context(x)
+
+    # -- export (DESIGN.md section 4) ----------------------------------------------------------------
+    def ext_tensors(self) -> dict[str, np.ndarray]:
+        """`ext.*` float64 tensors for the weight file; only the active effects are written (absent = off).
+
+        Joints without the effect get the neutral value: 0 for additive terms, k = 1 for torque_gain,
+        k = +inf (compliance 0) for strap_compliance; stribeck_vs is written for every joint (unused where
+        Fs = 0).
+        """
+        p = self.physical()
+        out: dict[str, np.ndarray] = {}
+        f64 = lambda x: np.ascontiguousarray(np.asarray(x, dtype=np.float64))
+        if "viscous_damping" in self.effects:
+            out["ext.damping"] = f64(p["viscous_damping"])
+        if "coulomb_friction" in self.effects:
+            out["ext.coulomb"] = f64(p["coulomb_friction"])
+        if "stribeck_friction" in self.effects:
+            out["ext.stribeck_fs"] = f64(p["stribeck_friction"])
+            out["ext.stribeck_vs"] = f64(p["stribeck_vs"])
+        if "actuation_delay" in self.effects:
+            out["ext.delay"] = f64(p["actuation_delay"])
+        if "encoder_offset" in self.effects:
+            out["ext.encoder_offset"] = f64(p["encoder_offset"])
+        if "torque_bias" in self.effects:
+            out["ext.torque_bias"] = f64(p["torque_bias"])
+        if "torque_gain" in self.effects:
+            out["ext.torque_gain"] = f64(p["torque_gain"])
+        if "strap_compliance" in self.effects:
+            out["ext.strap_compliance"] = f64(p["strap_compliance"])
+        return out
