@@ -15,13 +15,28 @@ use crate::model::Model;
 /// worth integrating; the caller gets `Error::IllConditioned` instead of garbage).
 pub const COND_MAX: f64 = 1e12;
 
-/// The recorded exoskeleton torque for the extension terms that need it (DESIGN.md section 4).
+/// The recorded exoskeleton torque for the extension terms that need it (DESIGN.md section 4,
+/// `exolan.extensions`). Without it (None) those terms see τ_e = 0.
 #[derive(Debug, Clone, Copy)]
 pub struct ExoTorque<'a> {
-    /// τ_e(t), N m.
+    /// τ_e(t) as recorded, N m.
     pub now: &'a [f64],
-    /// τ_e(t − d) for the actuation-delay term (None: no delay information, the term is 0).
-    pub delayed: Option<&'a [f64]>,
+    /// Applied torque τ_app = τ_e(t − d) (None: τ_e(t), i.e. no delay).
+    pub applied: Option<&'a [f64]>,
+    /// dτ_app/dt for the strap correction of q̇ (None: 0).
+    pub applied_d: Option<&'a [f64]>,
+    /// d²τ_app/dt² for the strap correction of q̈ (None: 0).
+    pub applied_dd: Option<&'a [f64]>,
+}
+
+impl<'a> ExoTorque<'a> {
+    /// Only the current recorded torque (no delay, no derivatives).
+    pub fn now(tau_e: &'a [f64]) -> Self {
+        ExoTorque { now: tau_e, applied: None, applied_d: None, applied_dd: None }
+    }
+    fn app(&self) -> &'a [f64] {
+        self.applied.unwrap_or(self.now)
+    }
 }
 
 /// Scratch memory for one thread of evaluation, sized at creation from the model.
@@ -36,6 +51,8 @@ pub struct Workspace {
     phi: Vec<f64>,
     dphi: Vec<f64>,
     pub(crate) qp: Vec<f64>,
+    qdp: Vec<f64>,
+    qddp: Vec<f64>,
     bufs_l: Vec<Vec<f64>>,
     bufs_v: Vec<Vec<f64>>,
     bufs_lim: Vec<Vec<f64>>,
@@ -70,6 +87,8 @@ impl Workspace {
             phi: vec![0.0; m.dphi],
             dphi: vec![0.0; 2 * n],
             qp: vec![0.0; n],
+            qdp: vec![0.0; n],
+            qddp: vec![0.0; n],
             bufs_l: m.net_l.buffers(nt),
             bufs_v: m.net_v.buffers(nt),
             bufs_lim: m.net_lim.as_ref().map(|l| l.buffers(1)).unwrap_or_default(),
@@ -406,17 +425,20 @@ impl Model {
         check("q", q, n)?;
         if let Some(te) = tau_e {
             check("tau_e", te.now, n)?;
-            if let Some(d) = te.delayed {
-                check("tau_e delayed", d, n)?;
+            for (name, x) in [("tau_e applied", te.applied), ("tau_e applied_d", te.applied_d), ("tau_e applied_dd", te.applied_dd)] {
+                if let Some(x) = x {
+                    check(name, x, n)?;
+                }
             }
         }
-        self.ext.physical_q(q, tau_e.map(|t| t.now), &mut ws.qp);
         Ok(())
     }
 
     /// H, c, g (and B, V) at (q, q̇) for the workspace's z; read them with `ws.h()`, `ws.c()`, ...
+    /// (The base model's terms at the given coordinates: no extension shifts.)
     pub fn terms(&self, ws: &mut Workspace, q: &[f64], qd: &[f64]) -> Result<()> {
         self.prepare(ws, q, None)?;
+        ws.qp.copy_from_slice(q);
         check("qd", qd, self.n)?;
         eval_dispatch(self, ws, qd, true);
         Ok(())
@@ -425,6 +447,7 @@ impl Model {
     /// Kinetic and potential energy (T, V) at (q, q̇).
     pub fn energy(&self, ws: &mut Workspace, q: &[f64], qd: &[f64]) -> Result<(f64, f64)> {
         self.prepare(ws, q, None)?;
+        ws.qp.copy_from_slice(q);
         check("qd", qd, self.n)?;
         eval_dispatch(self, ws, qd, false);
         let n = self.n;
@@ -459,20 +482,33 @@ impl Model {
         if tau.len() != n {
             return Err(Error::InputShape(format!("tau output has {} entries, expected {n}", tau.len())));
         }
-        eval_dispatch(self, ws, qd, true);
+        // measured → physical coordinates (encoder offset, strap deflection)
+        let app = tau_e.map(|t| t.app());
+        let mut qdp = std::mem::take(&mut ws.qdp);
+        let mut qddp = std::mem::take(&mut ws.qddp);
+        {
+            let ext = &self.ext;
+            ext.physical(q, true, app, &mut ws.qp);
+            ext.physical(qd, false, tau_e.and_then(|t| t.applied_d), &mut qdp);
+            ext.physical(qdd, false, tau_e.and_then(|t| t.applied_dd), &mut qddp);
+        }
+        eval_dispatch(self, ws, &qdp, true);
         for i in 0..n {
             let mut s = 0.0;
             for j in 0..n {
-                s += ws.h[i * n + j] * qdd[j];
+                s += ws.h[i * n + j] * qddp[j];
             }
             tau[i] = s + ws.c[i] + ws.g[i] - ws.b[i] * f_v;
         }
-        self.ext.add_dissipation(qd, self.meta.coulomb_eps, tau);
-        self.ext.add_sensor(tau_e.map(|t| t.now), tau_e.and_then(|t| t.delayed), tau);
+        self.ext.add_dissipation(&qdp, self.meta.coulomb_eps, tau);
+        self.ext.add_recording(tau_e.map(|t| t.now), app, tau);
+        ws.qdp = qdp;
+        ws.qddp = qddp;
         Ok(())
     }
 
-    /// q̈ = H⁻¹ (τ + B f_v − c − g − extension terms), where τ is the recorded total torque.
+    /// q̈ = H⁻¹ (τ + B f_v − c − g − extension terms), where τ is the recorded total torque and
+    /// (q, q̇) are physical coordinates (with extensions: offset and strap deflection removed).
     #[allow(clippy::too_many_arguments)]
     pub fn forward_dynamics(
         &self,
@@ -494,10 +530,11 @@ impl Model {
         if qdd.len() != n {
             return Err(Error::InputShape(format!("qdd output has {} entries, expected {n}", qdd.len())));
         }
+        ws.qp.copy_from_slice(q);
         self.forward_unchecked(ws, qd, tau, f_v, tau_e, qdd)
     }
 
-    /// Forward dynamics once `ws.qp` holds the physical coordinates (inputs already checked).
+    /// Forward dynamics at `ws.qp` (inputs already checked).
     #[inline]
     pub(crate) fn forward_unchecked(
         &self,
@@ -517,7 +554,7 @@ impl Model {
         if self.ext.any() {
             let (t1, ext) = (&mut ws.t1, &self.ext);
             ext.add_dissipation(qd, self.meta.coulomb_eps, t1);
-            ext.add_sensor(tau_e.map(|t| t.now), tau_e.and_then(|t| t.delayed), t1);
+            ext.add_recording(tau_e.map(|t| t.now), tau_e.map(|t| t.app()), t1);
         }
         for i in 0..n {
             ws.rhs[i] = tau[i] - ws.t1[i];

@@ -137,6 +137,10 @@ impl Tensors<'_> {
     }
     /// The tensor's values (row-major), checking dtype and shape and finiteness.
     fn get(&mut self, name: &str, shape: &[usize]) -> Result<Vec<f64>> {
+        self.get_checked(name, shape, false)
+    }
+    /// As `get`; `allow_pos_inf` admits +inf (the neutral strap stiffness).
+    fn get_checked(&mut self, name: &str, shape: &[usize], allow_pos_inf: bool) -> Result<Vec<f64>> {
         let t = self.st.tensor(name).map_err(|_| Error::MissingTensor(name.to_string()))?;
         if t.dtype() != Dtype::F64 {
             return Err(Error::Dtype { name: name.to_string(), dtype: format!("{:?}", t.dtype()) });
@@ -150,7 +154,7 @@ impl Tensors<'_> {
             return Err(Error::Format(format!("tensor '{name}' holds {} bytes, expected {}", data.len(), count * 8)));
         }
         let v: Vec<f64> = data.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect();
-        if v.iter().any(|x| !x.is_finite()) {
+        if v.iter().any(|x| !(x.is_finite() || (allow_pos_inf && *x == f64::INFINITY))) {
             return Err(Error::NonFiniteWeight(name.to_string()));
         }
         self.used.insert(name.to_string());
@@ -394,7 +398,7 @@ impl Model {
             }
         }
 
-        let ext = Ext::load(n, |name, shape| if ts.has(name) { ts.get(name, shape).map(Some) } else { Ok(None) })?;
+        let ext = Ext::load(n, |name, shape, inf| if ts.has(name) { ts.get_checked(name, shape, inf).map(Some) } else { Ok(None) })?;
 
         // Leftover tensors: a misspelt name must not be silently ignored.
         let mut names: Vec<&str> = ts.st.names();

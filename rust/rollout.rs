@@ -35,18 +35,18 @@ pub struct Inputs<'a> {
     pub tau_e: Option<&'a [f64]>,
 }
 
-/// τ_e(t − d) by linear interpolation in the recorded sequence (held at the first sample before it).
-pub(crate) fn delayed_into(tau_e: &[f64], n: usize, k: usize, dt: f64, delay: &[f64], out: &mut [f64]) {
+/// τ_e(t − d) by linear interpolation in the recorded sequence, clamped at its first sample
+/// (as `ExtendedModel._shift` over a history clamped at the trial start).
+pub fn delayed_into(tau_e: &[f64], n: usize, k: usize, dt: f64, delay: &[f64], out: &mut [f64]) {
     for i in 0..n {
-        let s = k as f64 - delay[i] / dt;
-        let (idx, frac) = if s <= 0.0 {
-            (0usize, 0.0)
-        } else {
-            let f = s.floor();
-            (f as usize, s - f)
-        };
-        let a = tau_e[idx * n + i];
-        out[i] = if frac > 0.0 && idx + 1 <= k { a + frac * (tau_e[(idx + 1) * n + i] - a) } else { a };
+        // the same arithmetic as torch: s = d/dt samples, x0 = k0 back, x1 = k0+1 back
+        let s = delay[i] / dt;
+        let k0f = s.floor();
+        let frac = s - k0f;
+        let k0 = k0f as usize;
+        let i0 = k.saturating_sub(k0);
+        let i1 = k.saturating_sub(k0 + 1);
+        out[i] = (1.0 - frac) * tau_e[i0 * n + i] + frac * tau_e[i1 * n + i];
     }
 }
 
@@ -127,22 +127,20 @@ impl Model {
             let tau_e = match (te_now, delay) {
                 (Some(now), Some(d)) => {
                     delayed_into(inp.tau_e.unwrap(), n, k, dt, d, &mut del);
-                    Some(ExoTorque { now, delayed: Some(&del) })
+                    Some(ExoTorque { now, applied: Some(&del), applied_d: None, applied_dd: None })
                 }
-                (Some(now), None) => Some(ExoTorque { now, delayed: None }),
+                (Some(now), None) => Some(ExoTorque::now(now)),
                 _ => None,
             };
-            self.ext.physical_q(qp, tau_e.map(|t| t.now), &mut ws.qp);
+            // the state is in physical coordinates (as torch's ExtendedModel.forward_dynamics)
+            ws.qp.copy_from_slice(qp);
             let f_v = inp.f_v.map_or(0.0, |f| f[k]);
             let mut qdd = std::mem::take(&mut ws.qdd);
             let r = self.forward_unchecked(ws, qdp, &inp.tau[k * n..(k + 1) * n], f_v, tau_e, &mut qdd);
             ws.tau_e_del = del;
             if let Err(e) = r {
                 ws.qdd = qdd;
-                return Err(match e {
-                    Error::IllConditioned { .. } => e,
-                    other => other,
-                });
+                return Err(e);
             }
             for i in 0..n {
                 qdn[i] = qdp[i] + dt * qdd[i];

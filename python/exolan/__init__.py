@@ -17,4 +17,6 @@ except ImportError:  # the extension is not built; `exolan doctor` says so
     _native = None
     native_version = None
 
-__all__ = ["__version__", "native_version"]
+from .engine import Engine, fast_rollout  # numpy + the extension only (no torch)
+
+__all__ = ["__version__", "native_version", "Engine", "fast_rollout"]
