@@ -290,3 +290,13 @@ def test_cli_simulate(tmp_path):
     assert rc == 0
     assert (tmp_path / "S02" / "squat_1_1" / "Exo.csv").exists()
     assert main(["simulate", "--out", str(tmp_path / "x"), "--tasks", "flying"]) == 2
+
+
+def test_plot_trial_writes_a_png(small_world, tmp_path):
+    from exolan.cli import main
+
+    out = tmp_path / "walk.png"
+    assert main(["plot", str(small_world / "S01" / "walk_1_1"), "--out", str(out)]) == 0
+    data = out.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 30_000
+    assert main(["plot", str(tmp_path / "nothing_here"), "--out", str(tmp_path / "x.png")]) == 2

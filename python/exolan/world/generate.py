@@ -154,6 +154,8 @@ class TrialWorld:
                 xdd = O(t, 2) + Add * F + 2 * Ad * F1 * psid + A * (F2 * psid ** 2 + F1 * psidd)
                 if self.bumps:
                     tb, ah, ak, w = self.bumps[s]
+                    keep = (tb > t.min() - 5 * w) & (tb < t.max() + 5 * w)  # only events near these times
+                    tb, ah, ak, w = tb[keep], ah[keep], ak[keep], w[keep]
                     near = np.abs(np.subtract.outer(t, tb)) < 5 * w
                     u = np.where(near, np.subtract.outer(t, tb) / w, 0.0)
                     g = np.where(near, np.exp(-0.5 * u * u), 0.0)
@@ -206,11 +208,13 @@ class TrialWorld:
                 cop_x[:, s] = Lf * (sp.cop[0] + (sp.cop[1] - sp.cop[0]) * sv)
                 cop_z[:, s] += 0.006 * np.sin(2 * np.pi * sv)
                 point[:, s] = dyn.cop_point(p, q[:, s], cop_x[:, s])
-                # GRF aimed at a point ahead of the hip early in stance, behind it late
+                # GRF aimed at a point ahead of the hip early in stance (most in loading response),
+                # behind it late
                 # ... and, with a deeply flexed knee, toward the knee (the body's COM moves
                 # forward over the foot; the line does not pass far behind a bent knee)
                 knee_x = dyn.points(p, q[:, s])["knee"][:, 0]
-                aim_x = self.gait_offset * np.cos(np.pi * sv) + 0.5 * np.sin(q[:, s, 1]) ** 2 * knee_x
+                aim_x = (self.gait_offset * np.cos(np.pi * sv) + 0.035 * (1 - sv) ** 2
+                         + 0.5 * np.sin(q[:, s, 1]) ** 2 * knee_x)
                 fx[:, s] = np.clip(fy[:, s] * (aim_x - point[:, s, 0]) / (-point[:, s, 1]),
                                    -0.8 * fy[:, s], 0.8 * fy[:, s])  # friction cone
             a_p[:, 0] = fx.sum(1) / self.Mc
@@ -280,19 +284,23 @@ class TrialWorld:
                 out[:, s, j] = soft_clip(g * tau_l[:, s, j] + self.exo_wiggle[s][j](t))
         return out
 
-    def applied(self, t):
-        """Exoskeleton torque acting on the limb: the command delayed by each joint's actuation delay."""
+    def applied(self, t, cmd=None):
+        """Exoskeleton torque acting on the limb: the command delayed by each joint's actuation
+        delay (``cmd``: the command at t, reused where there is no delay)."""
         out = np.empty(np.shape(t) + (2, 2))
+        done = {}
         for j in range(2):
             d = float(self.fx[j].get("actuation_delay", 0.0))
-            out[:, :, j] = self.exo_command(np.asarray(t) - d)[:, :, j]
+            if d not in done:
+                done[d] = cmd if (d == 0.0 and cmd is not None) else self.exo_command(np.asarray(t) - d)
+            out[:, :, j] = done[d][:, :, j]
         return out
 
     def evaluate(self, t):
         """All true and recorded quantities (noise-free) at times t."""
         c = self.core(t)
         cmd = self.exo_command(t)
-        app = self.applied(t)
+        app = self.applied(t, cmd)
         qd = c["qd"]
         tau_h = c["tau_tot"] - app
         q_meas = c["q"].copy()
