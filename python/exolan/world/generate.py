@@ -115,9 +115,9 @@ class TrialWorld:
         self.shape_mean = float(np.mean(self._shape(s)))
         # exoskeleton controller: a lagged, modulated share of the required torque + its own wiggle
         self.exo_lag = rng.uniform(0.015, 0.03)
-        self.exo_gain = np.array([0.12, 0.12]) * st["assist"]
+        self.exo_gain = np.array([0.14, 0.14]) * st["assist"]
         self.exo_mod = [[Smooth(rng, 0.35, (3.0, 12.0)) for _ in range(2)] for _ in range(2)]
-        self.exo_wiggle = [[Smooth(rng, 1.5, (0.2, 1.0), n=4) for _ in range(2)] for _ in range(2)]
+        self.exo_wiggle = [[Smooth(rng, 2.5, (0.15, 0.8), n=4) for _ in range(2)] for _ in range(2)]
 
     # --- kinematics ---------------------------------------------------------------------
     def _shape(self, s):
