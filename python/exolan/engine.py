@@ -39,7 +39,9 @@ class EngineTerms(NamedTuple):
 
 def _f64(x, name):
     try:
-        return np.ascontiguousarray(np.asarray(x, dtype=np.float64))
+        a = np.asarray(x, dtype=np.float64)
+        # (np.ascontiguousarray would turn a 0-d array into 1-d)
+        return a if a.flags.c_contiguous else np.ascontiguousarray(a)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must be convertible to a float64 array ({exc})") from None
 
