@@ -99,7 +99,7 @@ def test_contact_torque_is_J_transpose_f(legs):
 
 
 def test_free_leg_conserves_energy(legs):
-    """Hip fixed, zero torque, plain gravity: RK4 at 0.1 ms for 2 s keeps T + V constant."""
+    """Hip fixed, zero torque, plain gravity: RK4 at 0.2 ms for 1 s keeps T + V constant."""
     p = legs[3]
     x = np.array([1.0, 1.2, 0.0, 0.0])
 
@@ -107,14 +107,15 @@ def test_free_leg_conserves_energy(legs):
         return np.concatenate([s[2:], dyn.forward_dynamics(p, s[:2], s[2:], np.zeros(2))])
 
     E0 = dyn.energy(p, x[:2], x[2:])
-    h = 1e-4
-    drift = 0.0
-    for _ in range(20000):
+    h = 2e-4
+    drift = vmax = 0.0
+    for _ in range(5000):
         k1 = f(x); k2 = f(x + h / 2 * k1); k3 = f(x + h / 2 * k2); k4 = f(x + h * k3)  # noqa: E702
         x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         drift = max(drift, abs(dyn.energy(p, x[:2], x[2:]) - E0))
+        vmax = max(vmax, np.abs(x[2:]).max())
     scale = (p.m1 + p.m2) * G * (p.l1 + p.l2)   # the energy the leg exchanges, ~ 100 J
-    assert np.abs(x[2:]).max() > 3.0           # it really swung
+    assert vmax > 3.0                          # it really swung
     assert drift < 1e-9 * scale
 
 
@@ -226,8 +227,9 @@ def test_effect_observation_effects():
     np.testing.assert_allclose(b["q_meas"][..., 0] - a["q"][..., 0], 0.05, atol=1e-12)
     a, b = _pair("strap_compliance:knee:300")
     np.testing.assert_allclose(b["q_meas"][..., 1] - a["q"][..., 1], b["tau_e_app"][..., 1] / 300, atol=1e-12)
-    dq = np.gradient(b["q_meas"][..., 1], b["t"], axis=0)
-    assert np.abs(dq - b["qd_meas"][..., 1])[5:-5].max() < 0.02 * np.abs(dq).max()
+    w, t, h = b["world"], b["t"], 1e-5   # the measured velocity is the derivative of the measured angle
+    dq = (w.evaluate(t + h)["q_meas"][..., 1] - w.evaluate(t - h)["q_meas"][..., 1]) / (2 * h)
+    assert np.abs(dq - b["qd_meas"][..., 1]).max() < 1e-5 * np.abs(dq).max()
     a, b = _pair("torque_bias:hip:2.0")
     np.testing.assert_allclose(b["tau_e_rec"][..., 0] - b["tau_e_app"][..., 0], 2.0, atol=1e-12)
     a, b = _pair("torque_gain:knee:1.2")
