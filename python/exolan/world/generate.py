@@ -251,7 +251,15 @@ class TrialWorld:
             for s in range(2):
                 stance[:, s] = share[:, s] > 0.02
                 fy[:, s] = np.maximum(Wt * share[:, s], 0.0)
-                cop_x[:, s] = Lf * (0.45 + 0.08 * self.sway[s](t))
+                if sp.grf == "vertical":
+                    # quasi-static balance: the CoP lies under the body's COM, which sits above the
+                    # hip, moved forward as the trunk leans (pelvis tilt beyond neutral) and swaying;
+                    # the foot bounds where it can be
+                    ankle_x = dyn.points(p, q[:, s])["ankle"][:, 0]
+                    com_x = 0.25 * np.sin(2 * (tilt - np.radians(self.tilt0))) + 0.01 * self.sway[s](t)
+                    cop_x[:, s] = np.clip(com_x - ankle_x + p.heel_to_ankle, 0.05 * Lf, 0.95 * Lf)
+                else:
+                    cop_x[:, s] = Lf * (0.45 + 0.08 * self.sway[s](t))
                 point[:, s] = dyn.cop_point(p, q[:, s], cop_x[:, s])
                 if sp.grf == "vertical":
                     fx[:, s] = np.clip(Wx * share[:, s] + (self.lean(t) * fy[:, s] if self.lean is not None else 0.0),
