@@ -106,6 +106,17 @@ class StandInBackend:
         (Path(out) / "fake.json").write_text(json.dumps({"users": scale.users, "seed": scale.world_seed}))
 
     def load(self, data_dir):
+        if (Path(data_dir) / "real.json").exists():  # stand-in for shared/real: REAL01 + two other people
+            trials = []
+            for tr in fake_world(users=3, T=200, seed=5):
+                subj = {"S00": "REAL01", "S01": "REAL02", "S02": "REAL03"}[tr.subject]
+                task = tr.task if subj == "REAL01" or tr.task == "walk" else None
+                if task is None:
+                    continue
+                if subj == "REAL01" and task in ("squat", "ball_toss"):
+                    task = task + "_asym"  # unseen variants of the one person with many trials
+                trials.append(dataclasses.replace(tr, subject=subj, task=task, name=f"{task}_1_1"))
+            return trials
         p = Path(data_dir) / "fake.json"
         cfg = json.loads(p.read_text()) if p.exists() else {"users": 6, "seed": 0}
         return fake_world(users=cfg["users"], seed=cfg["seed"])
@@ -193,9 +204,16 @@ def _metrics(out: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def tiny_serial(tmp_path_factory):
+def fake_real(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fake_real")
+    (d / "real.json").write_text("{}")
+    return str(d)
+
+
+@pytest.fixture(scope="module")
+def tiny_serial(tmp_path_factory, fake_real):
     out = tmp_path_factory.mktemp("tiny_serial")
-    summary = R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=None, log=lambda *a: None)
+    summary = R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=fake_real, log=lambda *a: None)
     return out, summary
 
 
@@ -211,6 +229,9 @@ def test_tiny_sweep_writes_a_complete_report(tiny_serial):
     assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms"}
     assert res["task_identification"]["sample_split"]["exolan"]["accuracy"][0] > 0
     assert any(c["claim"].startswith("ExoLaN+LIM vs TCN+LIM") for c in res["intention_claims"])
+    assert set(res["real"]) == {"exolan", "mlp-tcn", "tcn"}
+    assert float(res["real"]["exolan"]["unseen_user"]["mse"][0]) > 0
+    assert "real_mse_bars" in res["figures"]
     for name in ("mse_bars", "torque_tasks", "accelerations", "rollouts", "rollout_error_growth",
                  "task_identification"):
         png = out / res["figures"][name]
@@ -218,31 +239,31 @@ def test_tiny_sweep_writes_a_complete_report(tiny_serial):
         assert f"]({res['figures'][name]})" in md
 
 
-def test_rerun_skips_finished_runs_and_gives_identical_numbers(tiny_serial):
+def test_rerun_skips_finished_runs_and_gives_identical_numbers(tiny_serial, fake_real):
     out, _ = tiny_serial
     before = _metrics(out)
     lines = []
-    R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=None, log=lines.append)
+    R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append)
     assert any("0 to run" in l for l in lines), lines
     assert _metrics(out) == before
 
 
-def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, tmp_path):
+def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, fake_real, tmp_path):
     out, _ = tiny_serial
     import shutil
     shutil.copytree(out, tmp_path / "s")
     victim = next((tmp_path / "s" / "runs").rglob("DONE"))
     victim.unlink()  # as if killed before this run finished
     lines = []
-    R.reproduce("tiny", tmp_path / "s", workers=1, backend=STANDIN, real_dir=None, log=lines.append)
+    R.reproduce("tiny", tmp_path / "s", workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append)
     assert any("1 to run" in l for l in lines), lines
     a, b = _metrics(out), _metrics(tmp_path / "s")
     assert a == b
 
 
-def test_process_pool_gives_the_serial_numbers(tiny_serial, tmp_path):
+def test_process_pool_gives_the_serial_numbers(tiny_serial, fake_real, tmp_path):
     out, _ = tiny_serial
-    R.reproduce("tiny", tmp_path, workers=2, backend=STANDIN, real_dir=None, log=lambda *a: None)
+    R.reproduce("tiny", tmp_path, workers=2, backend=STANDIN, real_dir=fake_real, log=lambda *a: None)
     assert _metrics(tmp_path) == _metrics(out)
 
 
@@ -258,13 +279,13 @@ def test_paired_statistics():
 
 
 @pytest.mark.ray
-def test_ray_path_gives_the_local_numbers(tiny_serial, tmp_path):
+def test_ray_path_gives_the_local_numbers(tiny_serial, fake_real, tmp_path):
     ray = pytest.importorskip("ray", reason="optional dependency ray not installed (pip install exolan[ray])")
     out, _ = tiny_serial
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
              runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([str(HERE)] + sys.path)}})
     try:
-        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=None, ray_address="auto", log=lambda *a: None)
+        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=fake_real, ray_address="auto", log=lambda *a: None)
     finally:
         ray.shutdown()
     assert _metrics(tmp_path) == _metrics(out)

@@ -622,7 +622,9 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
           f"Executor: {meta['executor']}, {meta['workers']} worker(s) x {meta['threads_per_worker']} thread(s), "
           f"device {meta['device']}. {meta['n_runs']} training runs; wall time: world "
           f"{meta['seconds']['world']:.0f} s, runs {meta['seconds']['runs']:.0f} s (0 s means every run was "
-          "already complete and was reused).", "",
+          "already complete and was reused)."
+          + (f" **Failed runs, missing from the tables** (a re-run retries them): {', '.join(meta['failed_runs'])}."
+             if meta.get("failed_runs") else ""), "",
           "**Reading this report.** Every number labelled *ours* was measured in this sweep. Numbers labelled "
           "*paper* are the published ones (Schulze et al., ExoLaN, 2026) on the **real EPIC-lab exoskeleton "
           "dataset**; ours come from a simulated world (or the data given by `--data`), so absolute values are "

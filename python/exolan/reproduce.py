@@ -85,6 +85,7 @@ class Scale:
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     architectures: tuple[str, ...] = ARCHITECTURES
     lims: tuple[bool, ...] = (True, False)
+    batch_size: int = 8192           # paper: 8192; smaller worlds use smaller batches to get more updates
     fd_study: bool = True
     w_fd: float = 0.01
     w_ms: float = 1.0
@@ -96,19 +97,24 @@ class Scale:
     real: bool = True                # run the real-recordings section when the data are found
     real_epochs: int | None = None   # None = `epochs`
     real_seeds: tuple[int, ...] | None = None
+    real_batch_size: int = 1024      # the real set has ~12k training samples
 
 
 SCALES: dict[str, Scale] = {
     # Test-only: seconds of work, proves the orchestration end to end (not a study).
     "tiny": Scale("tiny", users=6, tasks="walk,stand,calisthenics,push_pull,jump_in_place,turn,cut,run,squat",
-                  seconds=2.0, epochs=2, seeds=(0, 1), architectures=("exolan", "mlp-tcn", "tcn"),
-                  lims=(True, False), rollout_stride=50, taskid_per_trial=100, taskid_epochs=20,
+                  seconds=2.0, epochs=2, seeds=(0, 1), architectures=("exolan", "mlp-tcn", "tcn"), batch_size=2048,
+                  lims=(True, False), rollout_stride=50, taskid_per_trial=60, taskid_epochs=5,
                   real=False),
+    # Test-only: the real models in the fewest runs that still fill every table (one seed).
+    "micro": Scale("micro", users=3, tasks="walk,stand,calisthenics,run,squat", seconds=1.5, epochs=1, seeds=(0,),
+                   architectures=("exolan", "mlp-tcn"), lims=(True,), batch_size=1024, rollout_stride=40,
+                   taskid_per_trial=50, taskid_epochs=5, real=True, real_epochs=1, real_seeds=(0,)),
     # Fits ~15 min on 2 shared cores: the full method grid on a reduced world and few epochs.
-    "small": Scale("small", users=21, tasks="all", seconds=4.0, epochs=8, seeds=(0, 1),
-                   rollout_stride=25, taskid_per_trial=200, taskid_epochs=200, real_epochs=30,
+    "small": Scale("small", users=21, tasks="all", seconds=3.0, epochs=5, seeds=(0, 1), batch_size=2048,
+                   rollout_stride=25, taskid_per_trial=200, taskid_epochs=200, real_epochs=20,
                    real_seeds=(0, 1)),
-    "medium": Scale("medium", users=21, tasks="all", seconds=20.0, epochs=100, seeds=(0, 1, 2),
+    "medium": Scale("medium", users=21, tasks="all", seconds=20.0, epochs=100, seeds=(0, 1, 2), batch_size=4096,
                     rollout_stride=10, taskid_per_trial=1000, taskid_epochs=300, real_epochs=200,
                     real_seeds=(0, 1, 2)),
     # The paper's protocol: full default world, 1000 epochs, 5 seeds.
@@ -129,13 +135,14 @@ class RunSpec:
     w_ms: float
     seed: int
     epochs: int
+    batch_size: int = 8192
 
     @property
     def run_id(self) -> str:
         # The id is the training configuration only, so that a configuration shared by two studies
         # (ExoLaN + LIM, inverse loss only = the FD study's first row) is trained once.
         return (f"{self.dataset}/{method_name(self.arch, self.lim)}_fd{self.w_fd:g}_ms{self.w_ms:g}"
-                f"_e{self.epochs}_s{self.seed}")
+                f"_e{self.epochs}{'' if self.batch_size == 8192 else f'_b{self.batch_size}'}_s{self.seed}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -146,14 +153,16 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
     for seed in scale.seeds:
         for arch in scale.architectures:
             for lim in scale.lims:
-                specs.append(RunSpec("world", arch, lim, 0.0, 0.0, seed, scale.epochs))
+                specs.append(RunSpec("world", arch, lim, 0.0, 0.0, seed, scale.epochs, scale.batch_size))
         if scale.fd_study:
-            specs.append(RunSpec("world", "exolan", True, scale.w_fd, 0.0, seed, scale.epochs))
-            specs.append(RunSpec("world", "exolan", True, scale.w_fd, scale.w_ms, seed, scale.epochs))
+            specs.append(RunSpec("world", "exolan", True, scale.w_fd, 0.0, seed, scale.epochs, scale.batch_size))
+            specs.append(RunSpec("world", "exolan", True, scale.w_fd, scale.w_ms, seed, scale.epochs,
+                                 scale.batch_size))
     if with_real:
         for seed in scale.real_seeds or scale.seeds:
             for arch in scale.architectures:
-                specs.append(RunSpec("real", arch, True, 0.0, 0.0, seed, scale.real_epochs or scale.epochs))
+                specs.append(RunSpec("real", arch, True, 0.0, 0.0, seed, scale.real_epochs or scale.epochs,
+                                     scale.real_batch_size))
     seen = set()
     unique = []
     for s in specs:
@@ -171,20 +180,17 @@ class RealBackend:
     """exolan's own world, reader, training and models."""
 
     def simulate(self, out: Path, scale: Scale) -> None:
-        import subprocess
-        cmd = [sys.executable, "-m", "exolan.cli", "simulate", "--out", str(out), "--users", str(scale.users),
-               "--tasks", scale.tasks, "--seed", str(scale.world_seed)]
-        if scale.seconds is not None:
-            cmd += ["--seconds", str(scale.seconds)]
-        subprocess.run(cmd, check=True)
+        from exolan.world import simulate
+        simulate(out, users=scale.users, tasks=scale.tasks, seconds=scale.seconds, seed=scale.world_seed,
+                 progress=False)
 
     def load(self, data_dir: str):
         from exolan import data
-        return data.load(data_dir)
+        return list(data.load(data_dir))
 
-    def split(self, dataset):
+    def split(self, trials):
         from exolan import data
-        s = data.paper_split(dataset)
+        s = data.paper_split(data.Dataset(list(trials)))
         return list(s.train), list(s.test_seen), list(s.test_unseen)
 
     def context_features(self, trial) -> np.ndarray:
@@ -196,29 +202,23 @@ class RealBackend:
             world = importlib.import_module("exolan.world")
         except ImportError:
             return {}
-        for name in ("TASK_GROUPS", "task_groups"):
-            obj = getattr(world, name, None)
-            if callable(obj):
-                obj = obj()
-            if isinstance(obj, dict):
-                return _normalise_groups(obj)
-        tasks = getattr(world, "TASKS", None)
-        if isinstance(tasks, dict):
-            out = {}
-            for k, v in tasks.items():
-                g = getattr(v, "group", None) if not isinstance(v, dict) else v.get("group")
-                if g:
-                    out[k] = g
-            return out
-        return {}
+        tasks = getattr(world, "TASKS", None)  # {task: group}
+        return _normalise_groups(tasks) if isinstance(tasks, dict) else {}
 
     def train(self, spec: RunSpec, train_trials, run_dir: Path, data_dir: str, device: str, threads: int):
-        """Train and return the model. Uses the training module's in-process API on trial lists
-        (needed for the real-data split, which is not the paper's user split)."""
+        """Train on the given trials (the real-data split is not the paper's user split, so the sweep
+        hands trial lists, not a directory) and return the model, in eval mode on the CPU."""
         from exolan import train as tr
-        return tr.train_trials(train_trials, method=spec.arch, lim=spec.lim, w_fd=spec.w_fd, w_ms=spec.w_ms,
-                               epochs=spec.epochs, seed=spec.seed, out=str(run_dir), device=device,
-                               resume=True, progress=False)
+        extra = {}
+        if spec.w_fd:
+            extra["w_fd"] = spec.w_fd
+        if spec.w_ms:
+            extra["w_ms"] = spec.w_ms
+        tr.train(list(train_trials), method=spec.arch, lim=spec.lim, epochs=spec.epochs, seed=spec.seed,
+                 out=run_dir, resume=True, progress=False, device=device, threads=threads,
+                 batch_size=spec.batch_size, **extra)
+        model, _ = tr.load_run(run_dir, device="cpu")
+        return model
 
 
 def _normalise_groups(obj: dict) -> dict[str, str]:
@@ -330,7 +330,17 @@ class JobContext:
 
 def run_job(spec_d: dict, ctx_d: dict) -> dict:
     """Train one configuration and evaluate it. Pure function of its arguments (and the files they name):
-    the same call gives the same result in a local worker and in a Ray task."""
+    the same call gives the same result in a local worker and in a Ray task. A failure is returned, not
+    raised, so that one diverging run does not stop a sweep of hours; it is not marked complete."""
+    try:
+        return _run_job(spec_d, ctx_d)
+    except Exception as exc:  # noqa: BLE001 - reported in the sweep log and the report
+        import traceback
+        return {"spec": spec_d, "run_id": RunSpec(**spec_d).run_id, "error": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc(), "train_seconds": 0.0, "eval_seconds": 0.0}
+
+
+def _run_job(spec_d: dict, ctx_d: dict) -> dict:
     spec, ctx = RunSpec(**spec_d), JobContext(**ctx_d)
     scale = SCALES[ctx.scale]
     import torch
@@ -372,7 +382,7 @@ def run_job(spec_d: dict, ctx_d: dict) -> dict:
             rows.append({"subject": tr.subject, "task": tr.task, "side": tr.side, "split": split,
                          "n": int(ok.sum()), "sse": np.nansum(np.where(ok[:, None], err, 0.0), axis=0).tolist(),
                          "mass": float(tr.mass)})
-            if spec.arch in DELAN_BASED:
+            if spec.arch == "exolan" and spec.lim and spec.dataset == "world":
                 fd_rows.append(_fd_metrics(model, tr, z, dtype, split, scale))
     result["torque_rows"] = rows
     if fd_rows:
@@ -573,9 +583,11 @@ def _task_identification(model, backend, train, dtype, seed: int, scale: Scale) 
     n_tr = int(0.8 * len(Y))
     out["sample_split"] = _classify(Z, Y, perm[:n_tr], perm[n_tr:], len(tasks), seed, scale)
     # split 2: whole trajectories
-    groups = np.unique(G)
-    gperm = rng.permutation(groups)
-    g_tr = set(gperm[: int(round(0.8 * len(groups)))].tolist())
+    # stratified by task: 80 % of each task's trajectories train, so every task appears on both sides
+    g_tr = set()
+    for c in range(len(tasks)):
+        gs = rng.permutation(np.unique(G[Y == c]))
+        g_tr.update(gs[: max(1, int(round(0.8 * len(gs))))].tolist())
     m = np.array([g in g_tr for g in G])
     out["trajectory_split"] = _classify(Z, Y, np.flatnonzero(m), np.flatnonzero(~m), len(tasks), seed, scale)
     out["tasks_names_majority"] = {k: tasks[v["majority_class"]] for k, v in out.items()
@@ -679,8 +691,13 @@ def execute(specs: list[RunSpec], ctx: JobContext, workers: int, ray_address: st
         return timings
     ctx_d = ctx.to_dict()
     t0 = time.perf_counter()
+    failed: list[str] = []
 
     def finish(spec, res, i):
+        if "error" in res:
+            failed.append(spec.run_id)
+            log(f"[reproduce] {i}/{len(todo)} {spec.run_id}: FAILED {res['error']}\n{res.get('traceback', '')}")
+            return
         _store(out, spec, ctx, res)
         timings[spec.run_id] = res.get("train_seconds", 0.0) + res.get("eval_seconds", 0.0)
         log(f"[reproduce] {i}/{len(todo)} {spec.run_id}: train {res['train_seconds']:.1f}s "
@@ -709,6 +726,9 @@ def execute(specs: list[RunSpec], ctx: JobContext, workers: int, ray_address: st
             futs = {pool.submit(run_job, s.to_dict(), ctx_d): s for s in todo}
             for i, f in enumerate(as_completed(futs), 1):
                 finish(futs[f], f.result(), i)
+    if failed:
+        log(f"[reproduce] {len(failed)} run(s) failed (not marked complete; a re-run retries them): "
+            + ", ".join(failed))
     return timings
 
 
@@ -777,12 +797,14 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
     t1 = time.perf_counter()
     execute(specs, ctx, workers, ray_address, log=log)
     t_runs = time.perf_counter() - t1
-    results = {s.run_id: load_result(out, s) for s in specs}
+    results = {s.run_id: load_result(out, s) for s in specs if _done(out, s, ctx)}
+    missing = [s.run_id for s in specs if s.run_id not in results]
+    specs = [s for s in specs if s.run_id in results]
     meta = {"scale": dataclasses.asdict(scale), "data": str(data_dir), "real_data": real_dir,
             "workers": workers, "threads_per_worker": threads, "device": device,
             "executor": f"ray {ray_address}" if ray_address else "local process pool",
             "seconds": {"world": t_world, "runs": t_runs}, "task_groups": ctx.groups,
-            "n_runs": len(specs)}
+            "n_runs": len(specs), "failed_runs": missing}
     summary = rep.build(out, scale, specs, results, meta, log=log)
     meta["seconds"]["total"] = time.perf_counter() - t0
     log(f"[reproduce] done in {meta['seconds']['total']:.0f}s: {out / 'report.md'}")
