@@ -40,7 +40,7 @@ def rollout(model, q0, qd0, tau, dt, z=None, f_v=None):
 def free_rollout(model, q0, qd0, dt, steps, z=None):
     """Unforced rollout of the conservative part of the model (no input, no LIM, z frozen).
 
-    Returns q, qd (B, steps + 1, n) and the energy E = T + V (B, steps + 1)."""
+    Returns q, qd (B, steps + 1, n) and the kinetic and potential energies T, V (B, steps + 1)."""
     from .delan import energy, forward_dynamics
 
     lag = model.delan
@@ -55,4 +55,4 @@ def free_rollout(model, q0, qd0, dt, steps, z=None):
         qds.append(qd)
     Q, QD = torch.stack(qs, dim=-2), torch.stack(qds, dim=-2)
     T, V = energy(lag, Q, QD, zz.unsqueeze(-2).expand(*Q.shape[:-1], zz.shape[-1]))
-    return Q, QD, T + V
+    return Q, QD, T, V
