@@ -214,7 +214,7 @@ class TrialWorld:
                 # forward over the foot; the line does not pass far behind a bent knee)
                 knee_x = dyn.points(p, q[:, s])["knee"][:, 0]
                 aim_x = (self.gait_offset * np.cos(np.pi * sv) + 0.035 * (1 - sv) ** 2
-                         + 0.5 * np.sin(q[:, s, 1]) ** 2 * knee_x)
+                         + 0.2 * np.sin(q[:, s, 1]) ** 2 * knee_x)
                 fx[:, s] = np.clip(fy[:, s] * (aim_x - point[:, s, 0]) / (-point[:, s, 1]),
                                    -0.8 * fy[:, s], 0.8 * fy[:, s])  # friction cone
             a_p[:, 0] = fx.sum(1) / self.Mc
