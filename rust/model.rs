@@ -314,7 +314,7 @@ impl Model {
             EncoderKind::Tcn => {
                 let levels = m.usize("tcn_levels")?;
                 let kernel = m.usize("tcn_kernel")?;
-                if levels == 0 || levels > 24 || kernel == 0 || kernel > 16 {
+                if levels == 0 || levels > 16 || kernel == 0 || kernel > 8 {
                     return Err(meta_err("tcn_levels", format!("levels {levels}, kernel {kernel} out of range")));
                 }
                 let mut blocks = Vec::with_capacity(levels);

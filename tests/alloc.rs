@@ -1,0 +1,131 @@
+//! After loading, no hot call allocates: a counting global allocator watches every allocation of
+//! this test binary (all threads) while the engine runs inverse/forward dynamics, terms, set_z,
+//! rollouts (single and batched on a rayon pool) and the streaming encoders.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use exolan::synth::{random_weights, SynthConfig};
+use exolan::{ExoTorque, Inputs, Model, Workspace, ZSeq};
+
+struct Counting;
+
+static ALLOCS: AtomicUsize = AtomicUsize::new(0);
+static COUNTING: AtomicBool = AtomicBool::new(false);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, l: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.alloc(l) }
+    }
+    unsafe fn dealloc(&self, p: *mut u8, l: Layout) {
+        unsafe { System.dealloc(p, l) }
+    }
+    unsafe fn realloc(&self, p: *mut u8, l: Layout, n: usize) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.realloc(p, l, n) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// Allocations made by `f`.
+fn count<F: FnOnce()>(f: F) -> usize {
+    let before = ALLOCS.load(Ordering::SeqCst);
+    COUNTING.store(true, Ordering::SeqCst);
+    f();
+    COUNTING.store(false, Ordering::SeqCst);
+    ALLOCS.load(Ordering::SeqCst) - before
+}
+
+fn ext_tensors() -> Vec<(String, Vec<usize>, Vec<f64>)> {
+    vec![
+        ("ext.damping".into(), vec![2, 2], vec![1.0, 0.2, 0.2, 0.5]),
+        ("ext.coulomb".into(), vec![2], vec![0.3, 0.0]),
+        ("ext.stribeck_fs".into(), vec![2], vec![0.1, 0.2]),
+        ("ext.stribeck_vs".into(), vec![2], vec![0.2, 0.3]),
+        ("ext.delay".into(), vec![2], vec![0.0, 0.012]),
+        ("ext.encoder_offset".into(), vec![2], vec![0.01, 0.0]),
+        ("ext.torque_bias".into(), vec![2], vec![0.0, -1.0]),
+        ("ext.torque_gain".into(), vec![2], vec![1.0, 1.1]),
+        ("ext.strap_compliance".into(), vec![2], vec![f64::INFINITY, 200.0]),
+    ]
+}
+
+// One test function: the counter is global, so parallel test threads would see each other.
+#[test]
+fn hot_calls_do_not_allocate() {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    for (name, cfg) in [
+        ("tcn", SynthConfig::default()),
+        ("lstm", SynthConfig { encoder: "lstm", ..Default::default() }),
+        ("none/no-lim", SynthConfig { encoder: "none", lim: false, ..Default::default() }),
+        ("3 joints", SynthConfig { joint_types: vec!["revolute", "prismatic", "revolute"], ..Default::default() }),
+        ("extensions", SynthConfig { extra: ext_tensors(), ..Default::default() }),
+    ] {
+        let m = Model::from_bytes(&random_weights(&cfg)).unwrap();
+        let n = m.n;
+        // --- setup: allocation allowed ---
+        let mut ws = m.workspace();
+        let mut st = m.encoder_state();
+        let (t_len, bsz) = (50, 8);
+        let x = vec![0.3; m.context_dim()];
+        let mut z = vec![0.0; m.dz];
+        let z2: Vec<f64> = (0..m.dz).map(|i| i as f64 * 0.01).collect();
+        let q = vec![0.2; n];
+        let qd = vec![-0.4; n];
+        let qdd = vec![1.5; n];
+        let te = vec![3.0; n];
+        let te_app = vec![2.5; n];
+        let mut out = vec![0.0; n];
+        let mut qdd_out = vec![0.0; n];
+        let tau = vec![1.0; t_len * n];
+        let tau_e = vec![2.0; t_len * n];
+        let f_v = vec![100.0; t_len];
+        let zs = vec![0.1; t_len * m.dz];
+        let (mut qo, mut qdo) = (vec![0.0; (t_len + 1) * n], vec![0.0; (t_len + 1) * n]);
+        let mut wss: Vec<Workspace> = (0..bsz).map(|_| m.workspace()).collect();
+        let q0b = vec![0.1; bsz * n];
+        let taub = vec![1.0; bsz * t_len * n];
+        let zb = vec![0.1; bsz * m.dz];
+        let fvb = vec![50.0; bsz * t_len];
+        let (mut qob, mut qdob) = (vec![0.0; bsz * (t_len + 1) * n], vec![0.0; bsz * (t_len + 1) * n]);
+        let batch = |wss: &mut [Workspace], qob: &mut [f64], qdob: &mut [f64]| {
+            pool.install(|| {
+                m.rollout_batch(wss, &q0b, &q0b, Inputs { tau: &taub, z: ZSeq::Const(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, qob, qdob)
+                    .unwrap()
+            })
+        };
+        // warm-up (rayon's pool starts its threads lazily; thread-locals initialise on first use)
+        batch(&mut wss, &mut qob, &mut qdob);
+        ws.set_z(&m, &z2).unwrap();
+
+        // --- hot calls: no allocation ---
+        let allocs = count(|| {
+            for k in 0..100 {
+                if m.dz > 0 {
+                    m.encode_step(&mut st, &x, &mut z).unwrap();
+                    ws.set_z(&m, if k % 2 == 0 { &z } else { &z2 }).unwrap();
+                }
+                let exo = Some(ExoTorque { now: &te, applied: Some(&te_app), applied_d: Some(&te), applied_dd: Some(&te) });
+                m.inverse_dynamics(&mut ws, &q, &qd, &qdd, 120.0, exo, &mut out).unwrap();
+                m.forward_dynamics(&mut ws, &q, &qd, &out, 120.0, exo, &mut qdd_out).unwrap();
+                m.terms(&mut ws, &q, &qd).unwrap();
+                let _ = m.energy(&mut ws, &q, &qd).unwrap();
+            }
+            let zseq = if m.dz > 0 { ZSeq::PerStep(&zs) } else { ZSeq::Keep };
+            m.rollout(&mut ws, &q, &qd, Inputs { tau: &tau, z: zseq, f_v: Some(&f_v), tau_e: Some(&tau_e) }, 0.005, &mut qo, &mut qdo)
+                .unwrap();
+            batch(&mut wss, &mut qob, &mut qdob);
+        });
+        assert_eq!(allocs, 0, "{name}: {allocs} allocations in hot calls");
+        // and the counter does count (the test can fail)
+        assert!(count(|| drop(std::hint::black_box(vec![1u8; 16]))) >= 1);
+    }
+}
+
