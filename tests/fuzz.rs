@@ -20,6 +20,9 @@ impl Rng {
 }
 
 fn header_len(b: &[u8]) -> usize {
+    if b.len() < 8 {
+        return 0;
+    }
     u64::from_le_bytes(b[..8].try_into().unwrap()) as usize
 }
 
@@ -50,7 +53,7 @@ fn mutate(rng: &mut Rng, src: &[u8]) -> Vec<u8> {
                 let p = pos(rng, b.len());
                 b.insert(p, b"{}[],:\"0123456789-.eE"[rng.below(21)]);
             }
-            5 => {
+            5 if b.len() >= 8 => {
                 // header length field: off by a little or wildly
                 let v = header_len(&b) as i64 + [1i64, -1, 8, -8, 1 << 40, -(1 << 20)][rng.below(6)];
                 b[..8].copy_from_slice(&(v as u64).to_le_bytes());
