@@ -291,3 +291,42 @@ def test_real_recordings_load(real_data):
     assert -1.0 < np.nanmin(walk.tau[:, 1]) / walk.mass < -0.3
     sp = paper_split(ds)
     assert {t.subject for t in sp.test_seen} | {t.subject for t in sp.test_unseen} <= {"REAL04", "REAL05"}
+
+
+def _rewrite_columns(path: Path, fn):
+    lines = path.read_text().splitlines()
+    cols = lines[0].split(",")
+    out = [lines[0]]
+    for l in lines[1:]:
+        v = l.split(",")
+        for k, c in enumerate(cols):
+            nv = fn(c, float(v[0]), v[k])
+            if nv is not None:
+                v[k] = nv
+        out.append(",".join(v))
+    path.write_text("\n".join(out) + "\n")
+
+
+def test_small_standing_angles_in_degrees_are_not_mistaken_for_radians(small_world, tmp_path):
+    """Standing still in degrees (all within +-3 deg, velocity noise a few deg/s) is legal."""
+    root = _copy(small_world, tmp_path / "w", tasks=("walk", "stand"))
+
+    def still(c, t, v):
+        if c.endswith(("_angle_l", "_angle_r")):
+            return repr(float(2.5 * np.sin(2 * np.pi * 0.5 * t)))
+        if c.endswith("_velocity_filt"):
+            return repr(float(2.5 * np.pi * np.cos(2 * np.pi * 0.5 * t)))
+        return None
+    _rewrite_columns(root / "S01" / "stand_1_1" / "Exo.csv", still)
+    ds = load(root, cache=False)
+    assert len(ds) == 8
+
+
+def test_a_dataset_entirely_in_radians_is_refused(small_world, tmp_path):
+    root = _copy(small_world, tmp_path / "w", tasks=("walk", "stand"))
+    to_rad = lambda c, t, v: repr(float(np.radians(float(v)))) if c.endswith(  # noqa: E731
+        ("_angle_l", "_angle_r", "_velocity_filt")) else None
+    for p in root.rglob("Exo.csv"):
+        _rewrite_columns(p, to_rad)
+    with pytest.raises(DataError, match=r"walk_1_1/Exo.csv: column '\w+_angle_\w' looks like radians"):
+        load(root)

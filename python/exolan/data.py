@@ -217,14 +217,14 @@ def savgol_derivative(x: np.ndarray, dt: float, window: int = SAVGOL_WINDOW, ord
     return out
 
 
-def _check_units(cols: dict, path: Path, dt: float) -> None:
-    """Detectable unit mistakes in a layout-1 Exo.csv: radians in the degree columns.
+def _check_units(cols: dict, path: Path, dt: float) -> tuple:
+    """Detectable unit mistakes in a layout-1 Exo.csv: an angle column in radians while its
+    velocity is in deg/s (or the velocity in rad/s): the recorded velocity is then ~57 times
+    (or 1/57 of) the angle's own derivative. Raises DataError.
 
-    1. An angle column whose recorded velocity is ~57 times its own derivative holds radians
-       while the velocity holds deg/s (and the converse for a velocity in rad/s).
-    2. All angle columns within +-pi while the velocities exceed 3 units/s: a moving person in
-       degrees always leaves +-3 deg; in radians a walking knee never does.
-    """
+    Returns (max |angle|, max |velocity|, name of the largest angle column) for the
+    dataset-level check of radians in both columns (``_check_radians``), which a single file
+    cannot decide: a person standing still in degrees looks like a moving one in radians."""
     angle_cols, vel_cols = [], []
     for s in SIDES:
         for j in JOINTS:
@@ -251,13 +251,38 @@ def _check_units(cols: dict, path: Path, dt: float) -> None:
             if 1 / 150 < slope < 1 / 20:
                 raise DataError(f"{path}: column '{v}' looks like rad/s (it is 1/{1 / slope:.0f} of the "
                                 f"derivative of '{a}'); layout 1 wants deg/s")
-    if angle_cols:
-        amax = max((np.nanmax(np.abs(x)) if np.isfinite(x).any() else 0.0) for _, x in angle_cols)
-        vmax = max((np.nanmax(np.abs(x)) if np.isfinite(x).any() else 0.0) for x in vel_cols)
-        if 0 < amax < np.pi and vmax > 3.0:
-            worst = max(angle_cols, key=lambda c: np.nanmax(np.abs(c[1])) if np.isfinite(c[1]).any() else 0)
-            raise DataError(f"{path}: column '{worst[0]}' looks like radians: every angle stays within "
-                            f"+-{amax:.2f} while velocities reach {vmax:.1f}/s; layout 1 wants degrees")
+    amax = lambda x: float(np.nanmax(np.abs(x))) if np.isfinite(x).any() else 0.0  # noqa: E731
+    if not angle_cols:
+        return 0.0, 0.0, ""
+    worst = max(angle_cols, key=lambda c: amax(c[1]))
+    return amax(worst[1]), max(amax(v) for v in vel_cols), worst[0]
+
+
+def _check_radians(stats: list) -> None:
+    """Radians in both the angle and the velocity columns of layout 1.
+
+    ``stats``: (path, task, max |angle|, max |velocity|, column) per Exo.csv. A moving person
+    recorded in degrees leaves +-pi (3 deg) somewhere in a dataset, and a trial of a task leaves
+    it when the same task does elsewhere; in radians a walking knee never does. So:
+      * every file within +-pi while some velocity exceeds 3 units/s -> the dataset is in radians;
+      * one file within +-pi, moving (> 3 units/s), while other files of its task reach 2 pi -> that
+        file is in radians."""
+    if not stats:
+        return
+    moving = [s for s in stats if s[3] > 3.0]
+    if moving and all(s[2] < np.pi for s in stats):
+        p, _, a, v, col = max(moving, key=lambda s: s[3])
+        raise DataError(f"{p}: column '{col}' looks like radians: every angle of the dataset stays within "
+                        f"+-{max(s[2] for s in stats):.2f} while velocities reach {v:.1f}/s; layout 1 wants degrees")
+    by_task: dict = {}
+    for s in stats:
+        by_task.setdefault(s[1], []).append(s[2])
+    for p, task, a, v, col in stats:
+        others = sorted(by_task[task])
+        others.remove(a)
+        if a < np.pi and v > 3.0 and len(others) >= 1 and np.median(others) > 2 * np.pi:
+            raise DataError(f"{p}: column '{col}' looks like radians: its angles stay within +-{a:.2f} while "
+                            f"other '{task}' trials reach {np.median(others):.0f}; layout 1 wants degrees")
 
 
 # --------------------------------------------------------------------------------------------
@@ -294,7 +319,8 @@ def read_subjects(path: Path) -> tuple[dict, dict]:
     return masses, heights
 
 
-def read_trial_dir(trial_dir, mass: float, subject: str | None = None, files: dict | None = None):
+def read_trial_dir(trial_dir, mass: float, subject: str | None = None, files: dict | None = None,
+                   return_units: bool = False):
     """Parse one layout-1 trial directory -> (list of Trial (one per side with data), skipped).
 
     ``files`` may hold the already-read bytes of Exo.csv / Joint_Moments_Filt.csv."""
@@ -313,7 +339,7 @@ def read_trial_dir(trial_dir, mass: float, subject: str | None = None, files: di
     if len(tm) != len(t) or not np.allclose(tm, t, atol=1e-6 * max(1.0, abs(t[-1]))):
         raise DataError(f"{mom_p}: column 'time' does not match {exo_p.name} "
                         f"({len(tm)} rows vs {len(t)})")
-    _check_units(exo, exo_p, dt)
+    unit_stats = _check_units(exo, exo_p, dt)
     m = _TRIAL_RE.match(td.name)
     task = m.group("task") if m else td.name
     trials, skipped = [], []
@@ -340,20 +366,25 @@ def read_trial_dir(trial_dir, mass: float, subject: str | None = None, files: di
             trials.append(tr)
         else:
             skipped.append((tr.key, "no valid sample (side not measured or all NaN)"))
+    if return_units:
+        return trials, skipped, (exo_p, task) + unit_stats
     return trials, skipped
 
 
 def _load_layout1(root: Path, digest_files: dict) -> Dataset:
     masses, heights = read_subjects(root / "subjects.csv")
-    trials, skipped = [], []
+    trials, skipped, units = [], [], []
     for subject, td in _layout1_files(root):
         if subject not in masses:
             raise DataError(f"{root / 'subjects.csv'}: unknown subject mass: no row for subject '{subject}' "
                             f"(found {td})")
         files = {n: digest_files.get(td / n) for n in ("Exo.csv", "Joint_Moments_Filt.csv")}
-        tr, sk = read_trial_dir(td, masses[subject], subject, {k: v for k, v in files.items() if v is not None})
+        tr, sk, us = read_trial_dir(td, masses[subject], subject,
+                                    {k: v for k, v in files.items() if v is not None}, return_units=True)
         trials.extend(tr)
         skipped.extend(sk)
+        units.append(us)
+    _check_radians(units)
     if not trials:
         raise DataError(f"{root}: no trial with data (expected <SUBJECT>/<task>_k_m/Exo.csv)")
     return Dataset(trials, str(root), 1, masses, heights, skipped)
