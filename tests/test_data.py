@@ -210,8 +210,12 @@ def test_nan_gaps_are_masked_not_zero_filled(small_world, tmp_path):
 
 
 def test_failed_simulation_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """A run that fails half-way leaves the previous world untouched and no temporary files."""
     import exolan.world as world
 
+    out = tmp_path / "w"
+    simulate(out, users=1, tasks=["stand"], seconds=1, progress=False)
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
     calls = {"n": 0}
     real = world.record
 
@@ -223,12 +227,22 @@ def test_failed_simulation_leaves_nothing_half_written(tmp_path, monkeypatch):
 
     monkeypatch.setattr(world, "record", failing)
     with pytest.raises(RuntimeError):
-        simulate(tmp_path, users=2, tasks=["walk", "stand"], seconds=1, progress=False)
-    assert not list(tmp_path.rglob(".tmp-*"))
-    written = list(tmp_path.rglob("*.csv"))
-    assert len(written) == 4  # two complete trials, no subjects.csv yet
-    for p in written:
-        assert len(p.read_text().splitlines()) == 201
+        simulate(out, users=2, tasks=["walk", "stand"], seconds=1, progress=False)
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["w"]
+    # a successful run replaces the old world completely (no stale subjects)
+    monkeypatch.setattr(world, "record", real)
+    simulate(out, users=2, tasks=["walk"], seconds=1, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["S01", "S02", "effects.json", "subjects.csv"]
+    assert [p.name for p in (out / "S01").iterdir()] == ["walk_1_1"]
+    assert [p.name for p in tmp_path.iterdir()] == ["w"]
+    # a directory that is not a world is never replaced
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep")
+    with pytest.raises(ValueError, match="not a simulated world"):
+        simulate(other, users=1, tasks=["walk"], seconds=1, progress=False)
+    assert (other / "notes.txt").read_text() == "keep"
 
 
 def test_layout2_prismatic_and_revolute(tmp_path):

@@ -65,12 +65,19 @@ def simulate_trial(user: User, task: str, seconds: float | None = None, seed: in
 
 def simulate(out, users: int = 21, tasks="all", seconds: float | None = None, seed: int = 0,
              effects=(), noise: bool = True, progress: bool = True) -> dict:
-    """Write a world in layout 1 under ``out``; returns a summary dict."""
+    """Write a world in layout 1 under ``out``; returns a summary dict.
+
+    The world is built in a temporary sibling directory and moved into place at the end, so a
+    failed or interrupted run leaves ``out`` as it was (and nothing half-written). An existing
+    world at ``out`` (a directory with subjects.csv, or an empty one) is replaced; any other
+    non-empty directory is refused rather than deleted."""
+    import shutil
+    import tempfile
     from pathlib import Path
 
     from tqdm import tqdm
 
-    out = Path(out)
+    out = Path(out).absolute()
     task_list = resolve_tasks(tasks)
     eff = coerce(effects)
     people = make_users(int(users), _rng(seed, 0))
@@ -80,21 +87,35 @@ def simulate(out, users: int = 21, tasks="all", seconds: float | None = None, se
             bad = [s for s in e.subjects if s not in names]
             if bad:
                 raise ValueError(f"effect {e.effect}: unknown subject(s) {bad} (world has {names[0]}..{names[-1]})")
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "subjects.csv").exists())):
+        raise ValueError(f"{out} exists and is not a simulated world; refusing to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     t0 = time.time()
     n_rows = 0
-    with tqdm(total=len(people) * len(task_list), desc="simulate", unit="trial", disable=not progress) as bar:
-        for si, user in enumerate(people):
-            for task in task_list:
-                exo, mom, _ = simulate_trial(user, task, seconds, seed, eff, noise, subject_index=si)
-                d = out / user.name / f"{task}_1_1"
-                dec = None if not noise else {k: resolution(k) for k in list(exo) + list(mom)}
-                write_csv(d / "Exo.csv", exo, dec)
-                write_csv(d / "Joint_Moments_Filt.csv", mom, dec)
-                n_rows += len(exo["time"])
-                bar.update(1)
-    _write_subjects(out / "subjects.csv", people)
-    write_json(out / "effects.json", [e.record(names) for e in eff])
+    try:
+        with tqdm(total=len(people) * len(task_list), desc="simulate", unit="trial", disable=not progress) as bar:
+            for si, user in enumerate(people):
+                for task in task_list:
+                    exo, mom, _ = simulate_trial(user, task, seconds, seed, eff, noise, subject_index=si)
+                    d = work / user.name / f"{task}_1_1"
+                    dec = None if not noise else {k: resolution(k) for k in list(exo) + list(mom)}
+                    write_csv(d / "Exo.csv", exo, dec)
+                    write_csv(d / "Joint_Moments_Filt.csv", mom, dec)
+                    n_rows += len(exo["time"])
+                    bar.update(1)
+        _write_subjects(work / "subjects.csv", people)
+        write_json(work / "effects.json", [e.record(names) for e in eff])
+        old = None
+        if out.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            out.rename(old / "world")
+        work.rename(out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
     return {"out": str(out), "users": len(people), "tasks": task_list, "samples": n_rows,
             "seconds": time.time() - t0}
 
