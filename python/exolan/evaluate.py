@@ -134,22 +134,47 @@ def forward_errors(model, trials, horizons: Sequence[int] = HORIZONS, stride: in
     return out
 
 
-def evaluate(model, trials, horizons: Sequence[int] = HORIZONS, stride: int = 5) -> dict:
-    """{"torque": torque_errors, "forward": forward_errors (DeLaN-based models only)}."""
+class torch_threads:
+    """Limit torch's CPU threads inside a block. Evaluation is made of small sequential ops (rollout
+    steps, one trial at a time) where extra threads only add synchronisation, badly so on a shared CPU."""
+
+    def __init__(self, n: int | None):
+        self.n = n
+
+    def __enter__(self):
+        self.old = torch.get_num_threads()
+        if self.n:
+            torch.set_num_threads(self.n)
+
+    def __exit__(self, *exc):
+        torch.set_num_threads(self.old)
+
+
+def evaluate(model, trials, horizons: Sequence[int] = HORIZONS, stride: int = 5, threads: int | None = 1) -> dict:
+    """{"torque": torque_errors, "forward": forward_errors (DeLaN-based models only), "n_trials"}.
+
+    torque: mse, per_joint, per_task {task: {mse, per_joint, n}}, n, var (torque variance), r2.
+    forward: qdd {mse, per_joint, n}; q and qd {"4"|"10"|"20": {mse, per_joint, n}}."""
     model.eval()
-    res = {"torque": torque_errors(model, trials), "n_trials": len(trials)}
-    if getattr(model, "is_lagrangian", False) and trials:
-        res["forward"] = forward_errors(model, trials, horizons, stride)
+    with torch_threads(threads):
+        res = {"torque": torque_errors(model, trials), "n_trials": len(trials)}
+        if getattr(model, "is_lagrangian", False) and trials:
+            res["forward"] = forward_errors(model, trials, horizons, stride)
     return res
 
 
 def physics_check(model, trials, max_samples: int = 20000, n_rollouts: int = 16, seconds: float = 1.0,
-                  seed: int = 0) -> dict:
+                  seed: int = 0, threads: int | None = 1) -> dict:
     """H positive definite with its condition number range on the data's states; energy conservation of
     the conservative model (τ = 0, no LIM, z frozen at a recorded value) under semi-implicit Euler, at the
     data's dt and at dt/4 (the drift of a first-order integrator shrinks about linearly with dt)."""
     if not getattr(model, "is_lagrangian", False):
         return {}
+    with torch_threads(threads):
+        return _physics_check(model, trials, max_samples, n_rollouts, seconds, seed)
+
+
+def _physics_check(model, trials, max_samples, n_rollouts, seconds, seed) -> dict:
     rng = np.random.default_rng(seed)
     qs, qds, zs = [], [], []
     for t in trials:
@@ -228,22 +253,6 @@ def _table(res: dict) -> str:
             lines.append(f"   free rollout at {k} = {e['dt']:.4g} s, {e['steps']} steps: energy drift / max T median "
                          f"{e['median_rel_drift']:.3g}, max {e['max_rel_drift']:.3g}")
     return "\n".join(lines)
-
-
-class torch_threads:
-    """Limit torch's CPU threads inside a block. Evaluation is made of small sequential ops (rollout
-    steps, one trial at a time) where extra threads only add synchronisation, badly so on a shared CPU."""
-
-    def __init__(self, n: int | None):
-        self.n = n
-
-    def __enter__(self):
-        self.old = torch.get_num_threads()
-        if self.n:
-            torch.set_num_threads(self.n)
-
-    def __exit__(self, *exc):
-        torch.set_num_threads(self.old)
 
 
 def evaluate_run(run_dir, data, horizons: Sequence[int] = HORIZONS, threads: int | None = 1) -> dict:
