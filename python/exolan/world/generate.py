@@ -29,7 +29,7 @@ EXO_LIMIT = 15.0       # N m
 PAD = 0.5              # s of pre-roll before t = 0 for lags/delays
 
 # sensor noise (noise=True)
-ENC_NOISE_DEG = 0.03   # encoder noise, deg (white)
+ENC_NOISE_DEG = 0.01   # encoder noise, deg (white; a 14-bit encoder quantises at 0.022 deg)
 VEL_CUTOFF_HZ = 20.0   # velocity = zero-lag 2nd-order Butterworth (filtfilt) of the angle's derivative
 FORCE_NOISE_N = 4.0
 COP_NOISE_M = 0.002
