@@ -5,9 +5,25 @@ Python API::
 
     from exolan.world import simulate, TASKS, PAPER_TRAIN_TASKS
     simulate(out, users=21, tasks="all", seconds=None, seed=0, effects=[...], noise=True)
+    exo_cols, moment_cols, truth = simulate_trial(user, task, seconds, seed, effects, noise)
 
-``effects``: strings ``"NAME:JOINT:VALUE[:SUBJECTS]"`` (as on the command line), dicts in the
-effects.json shape, or :class:`Effect` objects.
+``tasks``: "all" (28), "train" (the paper's 7) or a list / comma-separated names; ``seconds``:
+per trial (default 20 s, ``task_seconds``). ``effects``: strings ``"NAME:JOINT:VALUE[:SUBJECTS]"``
+(as on the command line; JOINT hip|knee|both, SUBJECTS joined by '+'), dicts in the
+effects.json shape, or :class:`Effect` objects. Same seed -> byte-identical files.
+
+The world, in short (details in the modules):
+  * anthropometry.py: Winter's segment tables scaled by mass and height, + exoskeleton masses.
+  * dynamics.py: planar 2-link leg hanging from the pelvis; H, c, g, J^T f, inverse/forward dynamics.
+  * tasks.py: 28 tasks (cyclic / impedance / unstructured) as Fourier templates with per-user
+    and per-cycle variation, stance schedules and load profiles.
+  * generate.py: kinematics first, then GRF (vertical + horizontal, CoP heel -> toe), pelvis
+    acceleration and tilt (unobserved), tau_tot = H qdd + c + g - J^T f, exoskeleton controller
+    (a lagged, modulated share of tau_tot plus its own variation, saturated at 15 N m), human
+    torque = tau_tot - applied exo torque (+ friction effects), sensors:
+    encoder noise ENC_NOISE_DEG, velocity = zero-lag Butterworth (VEL_CUTOFF_HZ) derivative of
+    the noisy angle, insole noise, low-passed moment noise, occasional NaN gaps in the moments.
+  * effects.py: the effect vocabulary with DESIGN.md section 4 semantics; effects.json records it.
 """
 from __future__ import annotations
 
