@@ -55,20 +55,23 @@ def test_chunk_with_prestart_mask_equals_trial_start():
     torch.testing.assert_close(enc(x[:, 10:])[:, 62:], enc(x)[:, 72:], rtol=0, atol=1e-12)
 
 
-def test_lstm_shape_and_zero_initial_state():
+def test_lstm_chunk_with_prestart_positions_starts_from_zero_state_at_trial_start():
     torch.manual_seed(3)
     enc = LSTMEncoder(5).double()
-    x = torch.randn(2, 30, 5, dtype=torch.float64)
+    x = torch.randn(1, 40, 5, dtype=torch.float64)
     z = enc(x)
-    assert z.shape == (2, 30, 16)
-    # a masked prefix is equivalent to starting at the first kept sample only if it feeds zeros; check
-    # that masking zeroes the inputs (the state then evolves from zero input, documented approximation)
-    keep = torch.ones(2, 30, dtype=torch.bool)
-    keep[:, :5] = False
-    z2 = enc(x, keep)
-    x0 = x.clone()
-    x0[:, :5] = 0
-    torch.testing.assert_close(z2, enc(x0), rtol=0, atol=0)
+    assert z.shape == (1, 40, 16)
+    # rows with 0, 7 and 62 garbage samples before the trial start, all 40 + 62 long
+    rows, keeps = [], []
+    for s in (0, 7, 62):
+        garbage = torch.randn(1, s, 5, dtype=torch.float64) * 5
+        tail = torch.randn(1, 62 - s, 5, dtype=torch.float64)
+        rows.append(torch.cat([garbage, x, tail], dim=1))
+        keeps.append(torch.cat([torch.zeros(s, dtype=torch.bool), torch.ones(40, dtype=torch.bool),
+                                torch.zeros(62 - s, dtype=torch.bool)]).unsqueeze(0))
+    zc = enc(torch.cat(rows), torch.cat(keeps))
+    for i, s in enumerate((0, 7, 62)):
+        torch.testing.assert_close(zc[i, s:s + 40], z[0], rtol=0, atol=1e-12)
 
 
 def test_model_context_normalises_and_zeroes_nonfinite():

@@ -88,15 +88,28 @@ class LSTMEncoder(nn.Module):
         self.z_dim = hidden
 
     def forward(self, x: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
-        """x (B, T, C) -> z (B, T, hidden), zero initial state at position 0.
+        """x (B, T, C) -> z (B, T, hidden), zero initial state at the trial start.
 
-        The LSTM has unbounded memory, so a training chunk that starts inside a trial (after a warm-up of
-        recorded samples) only approximates the whole-trial state; `keep` zeroes the pre-start inputs.
+        `keep` (B, T) marks positions inside the trial. A row whose first s positions lie before the trial
+        start is rotated left by s, so that the LSTM starts from zero state exactly at the trial start (as
+        the whole-trial pass and the Rust streaming encoder do), and its output rotated back; the pre-start
+        positions then hold values that no loss reads. A chunk that starts inside a trial begins from zero
+        state after its warm-up samples: the LSTM's memory is unbounded, so that part is a truncation.
         """
-        if keep is not None:
-            x = x * keep.to(x.dtype).unsqueeze(-1)
-        z, _ = self.lstm(x)
-        return z
+        if keep is None:
+            z, _ = self.lstm(x)
+            return z
+        B, T, _ = x.shape
+        pre = (~keep.bool()).to(torch.long).cumprod(dim=1).sum(dim=1)          # leading pre-start positions
+        if not bool(pre.any()):
+            z, _ = self.lstm(x)
+            return z
+        ar = torch.arange(T, device=x.device)
+        fwd = (ar.unsqueeze(0) + pre.unsqueeze(1)) % T                          # (B, T)
+        xr = torch.gather(x, 1, fwd.unsqueeze(-1).expand_as(x))
+        zr, _ = self.lstm(xr)
+        back = (ar.unsqueeze(0) - pre.unsqueeze(1)) % T
+        return torch.gather(zr, 1, back.unsqueeze(-1).expand(B, T, zr.shape[-1]))
 
 
 def tcn_window_z(encoder: TCNEncoder, x: torch.Tensor) -> torch.Tensor:

@@ -37,6 +37,9 @@ from .models import ExoModel, build_model
 from .rollout import rollout
 
 CHECKPOINT = "checkpoint.pt"
+# config keys that may differ on --resume: none of them changes the weights an epoch produces
+# (epochs only extends the run; the per-epoch generators do not depend on it)
+_RESUMABLE_CHANGES = ("epochs", "device", "threads", "val_every", "checkpoint_every")
 
 
 # -- data ------------------------------------------------------------------------------------------
@@ -329,7 +332,7 @@ def _run(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path, resum
     if ck_path.exists():
         old_cfg = json.loads((out / "config.json").read_text())
         mine = cfg.to_dict()
-        diff = {k for k in set(old_cfg) | set(mine) if k not in ("epochs", "device", "threads")
+        diff = {k for k in set(old_cfg) | set(mine) if k not in _RESUMABLE_CHANGES
                 and old_cfg.get(k) != mine.get(k)}
         if diff:
             raise ValueError(f"cannot resume {out}: config differs in {sorted(diff)}")
