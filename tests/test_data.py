@@ -344,3 +344,12 @@ def test_a_dataset_entirely_in_radians_is_refused(small_world, tmp_path):
         _rewrite_columns(p, to_rad)
     with pytest.raises(DataError, match=r"walk_1_1/Exo.csv: column '\w+_angle_\w' looks like radians"):
         load(root)
+
+
+def test_task_groups():
+    from exolan.data import task_group
+
+    assert task_group("walk") == "cyclic" and task_group("push_pull") == "impedance"
+    assert task_group("cut") == "unstructured" and task_group("walk_treadmill") == "cyclic"
+    assert task_group("drop_jump_asym") == "unstructured" and task_group("sit_to_stand_weak_legs") == "impedance"
+    assert task_group("juggling") == "unknown"

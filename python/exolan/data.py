@@ -589,6 +589,23 @@ def stack(trials) -> dict:
     return out
 
 
+# task families of names that are not the world's own (the real recordings, the EPIC files)
+_GROUP_ALIASES = {"walk": "cyclic", "run": "cyclic", "sprint": "cyclic", "stairs": "cyclic", "incline": "cyclic",
+                  "decline": "cyclic", "jump": "cyclic", "stand": "impedance", "squat": "impedance",
+                  "sit": "impedance", "lunge": "impedance", "lift": "impedance", "push": "impedance",
+                  "drop": "unstructured", "cut": "unstructured", "turn": "unstructured", "ball": "unstructured"}
+
+
+def task_group(task: str) -> str:
+    """The paper's task group of a task name: "cyclic", "impedance" or "unstructured" (the
+    world's table, then the name's first word, e.g. walk_fast -> cyclic); "unknown" otherwise."""
+    from .world.tasks import TASKS
+
+    if task in TASKS:
+        return TASKS[task]
+    return _GROUP_ALIASES.get(task.split("_")[0], "unknown")
+
+
 def real_data_path() -> Path:
     """The real recordings (../shared/real relative to the repository, or $EXOLAN_REAL_DATA)."""
     env = os.environ.get("EXOLAN_REAL_DATA")
