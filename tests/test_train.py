@@ -189,3 +189,12 @@ def test_cli_train_and_evaluate(small_world, tmp_path):
     assert set(res["unseen"]["torque"]["per_task"]) == {"squat", "run"}
     assert res["physics"]["positive_definite"] is True
     assert "torque MSE" in r.stdout and "cond(H)" in r.stdout
+
+
+def test_config_object_is_not_overridden_by_defaults(tiny, tmp_path):
+    rd = train(tiny, config={"method": "mlp", "lim": False, "epochs": 1, "batch_size": 4096}, out=tmp_path / "r",
+               progress=False)
+    spec = json.loads((rd / "model.json").read_text())
+    assert spec["method"] == "mlp" and spec["lim"] is False
+    conf = TrainConfig.from_dict(json.loads((rd / "config.json").read_text()))
+    assert conf.batch_size == 4096 and conf.epochs == 1

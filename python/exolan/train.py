@@ -280,7 +280,7 @@ def load_run(run_dir: str | Path, device: str = "cpu") -> tuple[ExoModel, dict]:
 
 # -- training --------------------------------------------------------------------------------------
 
-def train(data_or_split, method: str = "exolan", lim: bool = True, epochs: int | None = None,
+def train(data_or_split, method: str | None = None, lim: bool | None = None, epochs: int | None = None,
           seed: int | None = None, out: str | Path = "run", resume: bool = False, progress: bool = True,
           config: TrainConfig | dict | None = None, **cfg) -> Path:
     """Train a model and return its run directory.
@@ -289,6 +289,7 @@ def train(data_or_split, method: str = "exolan", lim: bool = True, epochs: int |
     (`.train`, `.test_seen`) or a list of Trials (all for training). Further keyword arguments are
     TrainConfig keys (lr, w_fd, w_ms, batch_size, ...; `model={...}` for model options); unknown keys raise.
     `resume=True` continues the run in `out` from its last checkpoint (or starts it if there is none).
+    Arguments left at None come from `config`, else from TrainConfig's defaults (method "exolan", LIM on).
     """
     base = config.to_dict() if isinstance(config, TrainConfig) else dict(config or {})
     cfg_obj = merge(base, method=method, lim=lim, epochs=epochs, seed=seed, **cfg)
