@@ -1,0 +1,99 @@
+"""Diagnosis (`exolan diagnose DATA [--model RUN] --out DIR`): what the model's physics gets wrong, the
+physical cause, the extended model and its measured gain on held-out data.
+
+API for the pipeline::
+
+    from exolan.diagnose import diagnose
+    report = diagnose("path/to/world", model=None, out="out/diagnosis")   # -> the diagnosis.json dict
+
+`data`: a dataset path (layout 1 or 2, read by `exolan.data.load`) or a list of `Trial`s. `model`: None
+(a slow-context DeLaN + LIM is trained on the training segments first), a run directory, or a DeLaN-based
+`ExoModel`; a given model's context is pooled per trial (a slow context, DIAGNOSIS_PITFALLS.md). `out`:
+directory for diagnosis.json, diagnosis.md, the plots and (when something is accepted) the extended
+model's `ext.*` tensors. `quick=True` uses short fits (tests); keyword `settings` overrides any
+`procedure.Settings` field.
+
+The procedure and its decision rule are documented in `exolan.diagnose.procedure`; the candidate library
+in `exolan.diagnose.candidates`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .candidates import CONFUSABLE, LIBRARY
+from .procedure import Settings, load_trials, run
+
+__all__ = ["diagnose", "cli_diagnose", "Settings", "LIBRARY", "CONFUSABLE"]
+
+QUICK = dict(steps_base=600, steps_refit=250, hidden=32, n_boot=400)
+
+
+def _pooled_base(model, trials):
+    """A trained DeLaN-based model with z averaged over each trial and frozen."""
+    from ..train import context_of
+    from .fit import DTYPE, PooledContext
+
+    if not getattr(model, "is_lagrangian", False):
+        raise ValueError("diagnosis needs a DeLaN-based model: its physics is what is diagnosed")
+    model = model.to(DTYPE)
+    zs = []
+    with torch.no_grad():
+        for t in trials:
+            ctx = torch.as_tensor(np.nan_to_num(context_of(t)), dtype=DTYPE)
+            z = model.context(ctx.unsqueeze(0))[0]
+            ok = torch.as_tensor(np.asarray(t.valid, bool))
+            zs.append(z[ok].mean(0) if ok.any() and z.shape[-1] else z.mean(0) if z.shape[-1] else z[0])
+    return PooledContext(model, torch.stack(zs))
+
+
+def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dict:
+    """Run the diagnosis; returns the diagnosis.json dict (also written to `out` when given)."""
+    from . import report as _report
+
+    cfg = dict(QUICK) if quick else {}
+    cfg.update(settings)
+    s = Settings(**cfg)
+    trials = load_trials(data)
+    base = None
+    if model is not None:
+        if isinstance(model, (str, Path)):
+            from ..train import load_run
+            model, _meta = load_run(model)
+        base = _pooled_base(model, trials)
+    res = run(None, model=base, settings=s, trials_loaded=trials)
+    if out is not None:
+        out = Path(out)
+        rep = _report.write(out, res)
+        if res.get("ext_model") is not None:
+            _save_ext(out, res)
+        return rep
+    return res["report"]
+
+
+def _save_ext(out: Path, res: dict) -> None:
+    """The extended model's `ext.*` tensors (float64, DESIGN.md section 4) as safetensors."""
+    try:
+        from safetensors.numpy import save_file
+    except ImportError:
+        return
+    t = res["ext_model"].ext_tensors()
+    if t:
+        meta = {"format": "exolan-ext", "joint_names": str(list(res["flat"].joints)),
+                "coulomb_eps": str(res["ext_model"].coulomb_eps)}
+        save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(out / "ext.safetensors"), metadata=meta)
+
+
+def cli_diagnose(args) -> int:
+    rep = diagnose(args.data, model=args.model, out=args.out)
+    found = rep["findings"]
+    if found:
+        for f in found:
+            print(f"found: {f['effect']} on {f['joint']} = {f['estimate']:.4g} {f['unit']} "
+                  f"(CI {f['ci'][0]:.4g} .. {f['ci'][1]:.4g}), held-out gain {f['heldout_gain']:.3g}")
+    else:
+        print("nothing found")
+    print(f"report: {Path(args.out) / 'diagnosis.md'}")
+    return 0

@@ -40,6 +40,7 @@ from ..extensions import ExtendedModel
 from . import residuals as R
 from . import stats
 from .candidates import FITTED, LIBRARY, rivals
+from .screen import screen
 from .fit import DTYPE, Flat, _base_of, _forward, extend, make_base, predict, prepare, sq_errors, train
 
 
@@ -236,23 +237,39 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     baseline["noise_floor"] = dict(gain=floor["gain"], ci=floor["ci"])
     structure = R.residual_structure(ref, flat, held)
 
-    # 2. every candidate, fitted jointly (warm start, same schedule as the reference)
+    # 2. screen every candidate post hoc (cheap), then fit the promising ones jointly (warm start, same
+    #    schedule and minibatches as the reference)
     joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
+    subjects = sorted({m["subject"] for m in flat.trial_meta})
     results = []
     fitted = {}
     for effect in s.effects:
         c = LIBRARY[effect]
         for j in joint_ids:
             name = flat.joints[j]
-            entry = dict(effect=effect, joint=name, subjects=sorted({m["subject"] for m in flat.trial_meta}),
-                         unit=c.unit(flat.joint_types[j]), kind=c.kind)
+            entry = dict(effect=effect, joint=name, subjects=subjects, unit=c.unit(flat.joint_types[j]), kind=c.kind,
+                         estimate=None, ci=None, heldout_gain=None)
+            results.append(entry)
             if c.needs_exo and not flat.has_exo:
-                entry.update(status="rejected", reason="no exoskeleton torque recorded: not testable",
-                             estimate=None, ci=None, heldout_gain=None)
-                results.append(entry)
+                entry.update(status="rejected", reason="no exoskeleton torque recorded: not testable")
+                continue
+            sc = screen(ref, flat, effect, j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
+            entry["screen"] = dict(gain=sc["gain"], ci=sc["ci"], theta=sc["theta"])
+            if not sc["passes"]:
+                entry.update(status="absorbable" if c.kind == "absorbable" else "rejected",
+                             reason=("a flexible conservative model represents this effect; " if c.kind == "absorbable"
+                                     else "") + "screen: " + sc["reason"], heldout_gain=sc["gain"],
+                             heldout_gain_ci=sc["ci"])
+                _log(s, f"{effect:18s} {name:9s} screen gain {sc['gain']:.3g} [{sc['ci'][0]:.3g}, {sc['ci'][1]:.3g}]: "
+                        f"{sc['reason']}")
                 continue
             t1 = time.time()
-            ext = extend(base, flat, [(effect, j)], max_delay=s.max_delay)
+            init = {}
+            if effect == "stribeck_friction" and "vs" in sc:
+                init["stribeck_vs"] = sc["vs"]
+            if effect == "actuation_delay" and "d" in sc:
+                init["actuation_delay"] = sc["d"]
+            ext = extend(base, flat, [(effect, j)], init=init, max_delay=s.max_delay)
             train(ext, flat, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
             e = sq_errors(ext, flat, held).sum(1)
             g = _gain(e_ref, e, s)
@@ -266,7 +283,6 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             entry["passes_gain"] = bool(g["ci"][0] > 0)
             entry["passes_floor"] = bool(g["ci"][0] > floor_abs)
             fitted[(effect, j)] = (ext, e)
-            results.append(entry)
             _log(s, f"{effect:18s} {name:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {g['gain']:.3g} "
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] rel {g['rel']:.3f} ({time.time() - t1:.0f} s)")
 
@@ -274,7 +290,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     rot = None
     for entry in results:
         c = LIBRARY[entry["effect"]]
-        if not (c.needs_exo and entry.get("passes_floor") and entry.get("identifiable")):
+        if "status" in entry or not (c.needs_exo and entry.get("passes_floor") and entry.get("identifiable")):
             continue
         rot = rot or _rotated(flat)
         j = flat.joints.index(entry["joint"])
@@ -287,7 +303,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         _log(s, f"null {entry['effect']} {entry['joint']}: candidate beats shifted-exo null by {gn['gain']:.3g} "
                 f"[{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
 
-    # 4. statuses
+    # 4. single-candidate verdicts
     for entry in results:
         if "status" in entry:
             continue
@@ -300,9 +316,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             entry["reason"] = ("a flexible conservative model represents this effect (coordinates of H and V, or a "
                                "potential); " + ("it still improved held-out torque" if passes else
                                                   "no held-out gain beyond the refit noise floor"))
-        elif passes:
-            entry["status"] = "accepted"
-        else:
+        elif not passes:
             why = []
             if not entry["passes_gain"]:
                 why.append("held-out gain CI includes 0")
@@ -315,44 +329,80 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             entry["status"] = "rejected"
             entry["reason"] = "; ".join(why)
 
-    # 5. rivals on the same joint
-    by_key = {(e["effect"], e["joint"]): e for e in results}
-    for entry in results:
-        if entry["status"] != "accepted":
-            continue
-        j = flat.joints.index(entry["joint"])
-        for rv in rivals(entry["effect"]):
-            other = by_key.get((rv, entry["joint"]))
-            if other is None or not other.get("passes") or (rv, j) not in fitted:
+    # 5. forward selection among the passing candidates: take the largest held-out gain; a confusable rival
+    #    on the same joint that held-out data cannot separate from it makes both ambiguous; every other
+    #    remaining candidate must then add a gain (beyond the noise floor) on top of the accepted terms.
+    pool = [e for e in results if e.get("passes") and e.get("status") is None]
+    acc_effects: list[tuple[str, int]] = []
+    acc_init: dict = {}
+    cur_e = e_ref
+    cur_model = None
+    while pool:
+        pool.sort(key=lambda e: -e["heldout_gain"])
+        top = pool.pop(0)
+        j = flat.joints.index(top["joint"])
+        tie = []
+        for rv in rivals(top["effect"]):
+            other = next((e for e in pool if e["effect"] == rv and e["joint"] == top["joint"]), None)
+            if other is None or (rv, j) not in fitted:
                 continue
-            d = _gain(fitted[(rv, j)][1], fitted[(entry["effect"], j)][1], s)   # > 0: entry better
-            entry.setdefault("rivals", {})[rv] = dict(advantage=d["gain"], ci=d["ci"])
-            if d["ci"][0] > 0:
-                continue   # this one explains held-out data better than its rival
-            if d["ci"][1] < 0:
-                entry["status"] = "rejected"
-                entry["reason"] = f"explained better by {rv} on held-out data"
+            d = _gain(fitted[(rv, j)][1], fitted[(top["effect"], j)][1], s)   # > 0: top is better
+            top.setdefault("rivals", {})[rv] = dict(advantage=d["gain"], ci=d["ci"])
+            other.setdefault("rivals", {})[top["effect"]] = dict(advantage=-d["gain"], ci=[-d["ci"][1], -d["ci"][0]])
+            if d["ci"][0] <= 0:
+                tie.append(other)
+        if tie:
+            for e in [top] + tie:
+                e["status"] = "ambiguous"
+                e["reason"] = "held-out data cannot separate " + " and ".join(x["effect"] for x in [top] + tie)
+                if e in pool:
+                    pool.remove(e)
+            continue
+        top["status"] = "accepted"
+        acc_effects.append((top["effect"], j))
+        acc_init[top["effect"]] = top["estimate"]
+        if top["effect"] == "stribeck_friction":
+            acc_init["stribeck_vs"] = top.get("vs", 0.1)
+        if not pool:
+            break
+        # refit the accepted set once (the reference for the conditional tests), then each remaining one on top
+        cur_model = extend(base, flat, acc_effects, init=acc_init, max_delay=s.max_delay)
+        train(cur_model, flat, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
+        cur_e = sq_errors(cur_model, flat, held).sum(1)
+        for e in list(pool):
+            jj = flat.joints.index(e["joint"])
+            init = dict(acc_init)
+            init[e["effect"]] = e["estimate"]
+            if e["effect"] == "stribeck_friction":
+                init["stribeck_vs"] = e.get("vs", 0.1)
+            both = extend(base, flat, acc_effects + [(e["effect"], jj)], init=init, max_delay=s.max_delay)
+            train(both, flat, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
+            e_both = sq_errors(both, flat, held).sum(1)
+            g = _gain(cur_e, e_both, s)
+            e["conditional_gain"] = dict(given=[f"{a}:{flat.joints[b]}" for a, b in acc_effects], gain=g["gain"], ci=g["ci"])
+            _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: gain {g['gain']:.3g} "
+                    f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
+            if g["ci"][0] > floor_abs:
+                e["heldout_gain"] = g["gain"]     # rank the rest by what they add
+                fitted[(e["effect"], jj)] = (both, e_both)
             else:
-                entry["status"] = "ambiguous"
-                entry["reason"] = f"held-out data cannot separate it from {rv}"
-    # a rival rejected only for losing keeps accepted status of the winner; re-check winners demoted above
-    for entry in results:
-        if entry["status"] == "rejected" and entry.get("reason", "").startswith("explained better"):
-            pass
+                pool.remove(e)
+                e["status"] = "rejected"
+                e["reason"] = ("adds nothing on held-out data once " + ", ".join(e["conditional_gain"]["given"]) +
+                               " is modelled")
 
     # 6. effects without a term
-    accepted = [e for e in results if e["status"] == "accepted"]
     for j in joint_ids:
         name = flat.joints[j]
         mimic = [e["effect"] for e in results if e["joint"] == name and e["effect"] in ("coulomb_friction", "strap_compliance")
-                 and e["status"] in ("accepted", "ambiguous")]
-        results.append(dict(effect="backlash", joint=name, subjects=sorted({m["subject"] for m in flat.trial_meta}),
+                 and e.get("status") in ("accepted", "ambiguous")]
+        results.append(dict(effect="backlash", joint=name, subjects=subjects,
                             unit=LIBRARY["backlash"].unit(flat.joint_types[j]), kind="not_modelled",
                             estimate=None, ci=None, heldout_gain=None,
                             status="ambiguous" if mimic else "rejected",
                             reason=(f"not modelled; its signature is that of {', '.join(mimic)}" if mimic else
                                     "not modelled; no Coulomb- or strap-like residual that it could explain")))
-        results.append(dict(effect="payload", joint=name, subjects=sorted({m["subject"] for m in flat.trial_meta}),
+        results.append(dict(effect="payload", joint=name, subjects=subjects,
                             unit="kg", kind="absorbable", estimate=None, ci=None, heldout_gain=None,
                             status="absorbable", reason="a mass on a segment changes H and V, which the model learns"))
 
@@ -363,10 +413,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     accepted = [e for e in results if e["status"] == "accepted"]
     if accepted:
         effs = [(e["effect"], flat.joints.index(e["joint"])) for e in accepted]
-        init = {}
-        for e in accepted:
-            v = e["estimate"]
-            init[e["effect"]] = v
+        init = dict(acc_init)
         ext_model = extend(base, flat, effs, init=init, max_delay=s.max_delay)
         train(ext_model, flat, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
         extended, ro_ext = _metrics(ext_model, flat, s, starts)

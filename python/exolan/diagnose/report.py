@@ -1,0 +1,278 @@
+"""The diagnosis report: `diagnosis.json` (the shape of issue 7), `diagnosis.md` and its plots."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .candidates import library_table
+from .fit import Flat
+from .residuals import residuals
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def _fmt(x, p=4):
+    if x is None:
+        return "—"
+    if isinstance(x, str):
+        return x
+    if isinstance(x, (list, tuple)):
+        return "[" + ", ".join(_fmt(v, p) for v in x) + "]"
+    try:
+        xf = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(xf):
+        return str(xf)
+    return f"{xf:.{p}g}"
+
+
+def plot_residual_vs_velocity(out: Path, flat: Flat, ref, ext=None, max_points: int = 4000) -> str:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import torch
+
+    held = flat.index("held")
+    if len(held) > max_points:
+        held = held[torch.linspace(0, len(held) - 1, max_points).long()]
+    r0 = residuals(ref, flat, held)
+    r1 = residuals(ext, flat, held) if ext is not None else None
+    n = flat.n
+    fig, axes = plt.subplots(1, n, figsize=(5 * n, 4), squeeze=False)
+    for j in range(n):
+        ax = axes[0, j]
+        v = flat.qd[held, j].numpy()
+        ax.scatter(v, r0[:, j], s=2, alpha=0.35, label="base model", color="tab:red")
+        if r1 is not None:
+            ax.scatter(v, r1[:, j], s=2, alpha=0.35, label="extended model", color="tab:blue")
+        ax.axhline(0, color="k", lw=0.5)
+        unit_v = "m/s" if flat.joint_types[j] == "prismatic" else "rad/s"
+        unit_t = "N" if flat.joint_types[j] == "prismatic" else "N m"
+        ax.set_xlabel(f"{flat.joints[j]} velocity [{unit_v}]")
+        ax.set_ylabel(f"torque residual τ_rec − τ̂ [{unit_t}]")
+        ax.set_title(f"{flat.joints[j]}: held-out residual vs velocity")
+        ax.legend(markerscale=4, fontsize=8)
+    fig.tight_layout()
+    name = "residual_vs_velocity.png"
+    fig.savefig(out / name, dpi=90)
+    plt.close(fig)
+    return name
+
+
+def plot_ccf(out: Path, structure: dict, flat: Flat) -> str:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = flat.n
+    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4), squeeze=False)
+    for j, name in enumerate(flat.joints):
+        ax = axes[0, j]
+        cc = structure[name]["ccf"]
+        keys = [f"qd_{name}", f"qdd_{name}", f"q_{name}"]
+        if flat.has_exo:
+            keys += [f"tau_e_{name}", f"tau_e_rate_{name}"]
+        if flat.has_insole:
+            keys += ["f_v"]
+        band = None
+        for k in keys:
+            if k not in cc:
+                continue
+            ax.plot(cc[k]["lags"], cc[k]["ccf"], label=k, lw=1)
+            band = cc[k]["band"] if band is None or not np.isfinite(band) else max(band, cc[k]["band"])
+        if band is not None and np.isfinite(band):
+            ax.axhspan(-band, band, color="0.85", label="95% band (no relation)")
+        ax.set_xlabel("lag [samples] (feature leads at positive lag)")
+        ax.set_ylabel("cross-correlation with residual")
+        ax.set_title(f"{name}: residual cross-correlations (base model)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fname = "residual_ccf.png"
+    fig.savefig(out / fname, dpi=90)
+    plt.close(fig)
+    return fname
+
+
+def plot_rollouts(out: Path, flat: Flat, ro_base: dict, ro_ext: dict | None) -> str:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    H = np.arange(1, len(ro_base["q"]) + 1)
+    for ax, key, lab in ((axes[0], "q", "q MSE [rad²]"), (axes[1], "qd", "q̇ MSE [rad²/s²]")):
+        ax.semilogy(H, ro_base[key], "o-", color="tab:red", label="base model", ms=3)
+        if ro_ext is not None and len(ro_ext[key]):
+            ax.semilogy(H, ro_ext[key], "o-", color="tab:blue", label="extended model", ms=3)
+        ax.set_xlabel(f"open-loop horizon [steps of {flat.dt * 1000:.0f} ms]")
+        ax.set_ylabel(lab)
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.suptitle("open-loop rollout error vs horizon (held-out segments)")
+    fig.tight_layout()
+    fname = "rollout_error.png"
+    fig.savefig(out / fname, dpi=90)
+    plt.close(fig)
+    return fname
+
+
+def plot_gains(out: Path, results: list) -> str | None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [e for e in results if e.get("heldout_gain") is not None and e.get("heldout_gain_ci") is not None]
+    if not rows:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 0.3 * len(rows) + 1.5))
+    colors = {"accepted": "tab:green", "rejected": "0.5", "absorbable": "tab:orange", "ambiguous": "tab:purple"}
+    for i, e in enumerate(rows):
+        g, (lo, hi) = e["heldout_gain"], e["heldout_gain_ci"]
+        ax.errorbar([g], [i], xerr=[[g - lo], [hi - g]], fmt="o", color=colors.get(e["status"], "k"), ms=4)
+    ax.set_yticks(range(len(rows)))
+    ax.set_yticklabels([f"{e['effect']}:{e['joint']} ({e['status']})" for e in rows], fontsize=7)
+    ax.axvline(0, color="k", lw=0.5)
+    ax.set_xscale("symlog", linthresh=1e-3)
+    ax.set_xlabel("held-out gain in mass-normalised torque MSE [(N m/kg)²] with 95% block-bootstrap CI")
+    fig.tight_layout()
+    fname = "candidate_gains.png"
+    fig.savefig(out / fname, dpi=90)
+    plt.close(fig)
+    return fname
+
+
+RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none is tuned to a world):
+1. each candidate is first *screened* by a post-hoc least-squares correction of the reference residual
+   (fitted on training segments; it must lower held-out error with the physical sign) — only a screen;
+2. a screened candidate is fitted **jointly** with the whole model (warm start, the same optimiser schedule and
+   minibatches as a reference refit of the base model alone); its held-out gain (paired, per sample) must have
+   a circular-block-bootstrap 95% CI (block length from the ACF) above 0 **and** above the noise floor (two
+   reference refits differing only in minibatch order);
+3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
+   circularly shifted by half a trial (assistive torque correlates with the human torque);
+4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
+   (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
+5. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
+   add held-out gain beyond the noise floor on top of the already accepted ones (forward selection);
+6. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
+
+
+def write(out: Path, res: dict) -> dict:
+    """Write diagnosis.json, diagnosis.md and the PNGs into `out`; returns the JSON dict."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rep = res["report"]
+    flat = res["flat"]
+    plots = {}
+    try:
+        plots["residual_vs_velocity"] = plot_residual_vs_velocity(out, flat, res["ref"], res.get("ext_model"))
+        plots["ccf"] = plot_ccf(out, rep["residuals"], flat)
+        plots["rollouts"] = plot_rollouts(out, flat, res["ro_base"], res.get("ro_ext"))
+        g = plot_gains(out, res["results"])
+        if g:
+            plots["gains"] = g
+    except Exception as exc:   # a plotting failure must not lose the diagnosis itself
+        plots["error"] = repr(exc)
+    rep = dict(rep)
+    rep["plots"] = plots
+    _atomic_write(out / "diagnosis.json", json.dumps(rep, indent=1, default=str))
+    _atomic_write(out / "diagnosis.md", markdown(rep))
+    return rep
+
+
+def _metric_rows(b: dict, e: dict | None) -> list[str]:
+    rows = ["| metric | base model | extended model |", "|---|---|---|"]
+    def get(m, k):
+        return m.get(k) if m else None
+    rows.append(f"| held-out torque MSE [N² m²] | {_fmt(get(b, 'torque_mse'))} {_fmt(get(b, 'torque_mse_ci'), 3)} | "
+                f"{_fmt(get(e, 'torque_mse'))} {_fmt(get(e, 'torque_mse_ci'), 3)} |")
+    rows.append(f"| held-out torque MSE / mass² [(N m/kg)²] | {_fmt(get(b, 'torque_mse_norm'))} | {_fmt(get(e, 'torque_mse_norm'))} |")
+    for j, v in (b.get("per_joint") or {}).items():
+        ev = (e or {}).get("per_joint", {}).get(j, {})
+        rows.append(f"| {j}: rms residual / R² | {_fmt(v['rms'])} / {_fmt(v['r2'], 3)} | {_fmt(ev.get('rms'))} / {_fmt(ev.get('r2'), 3)} |")
+    for k, v in (b.get("rollout") or {}).items():
+        rows.append(f"| rollout {k} | {_fmt(v)} | {_fmt((e or {}).get('rollout', {}).get(k))} |")
+    be, ee = b.get("energy", {}), (e or {}).get("energy", {})
+    rows.append(f"| unexplained power q̇ᵀ(τ−τ̂) [W] | {_fmt(be.get('residual_power'))} {_fmt(be.get('residual_power_ci'), 3)} | "
+                f"{_fmt(ee.get('residual_power'))} {_fmt(ee.get('residual_power_ci'), 3)} |")
+    rows.append(f"| … as fraction of mean abs. input power | {_fmt(be.get('fraction'), 3)} | {_fmt(ee.get('fraction'), 3)} |")
+    return rows
+
+
+def markdown(rep: dict) -> str:
+    d = rep.get("data", {})
+    findings = rep["findings"]
+    L = ["# Diagnosis: what the model's physics gets wrong", ""]
+    L.append(f"Data: {d.get('trials')} trials, {d.get('samples')} samples, joints {d.get('joints')} "
+             f"({d.get('joint_types')}); exo torque recorded: {d.get('has_exo')}; insole: {d.get('has_insole')}. "
+             f"Decisions on {d.get('heldout')} held-out samples ({d.get('split')}).")
+    L.append(f"Base model: {rep['baseline'].get('source', '')}.")
+    L.append("")
+    L.append("## Verdict")
+    if findings:
+        for f in findings:
+            L.append(f"- **{f['effect']}** on **{f['joint']}**: {_fmt(f['estimate'])} {f['unit']} "
+                     f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
+                     f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
+    else:
+        L.append("- **Nothing found**: no candidate effect passed the decision rule on held-out data.")
+    amb = [e for e in rep["rejected"] if e["status"] == "ambiguous"]
+    for e in amb:
+        L.append(f"- ambiguous: {e['effect']} on {e['joint']} — {e.get('reason', '')}")
+    L.append("")
+    L.append("## Before and after (held-out)")
+    ext = rep.get("extended", {})
+    L += _metric_rows(rep["baseline"], ext if findings else None)
+    if findings and ext.get("heldout_gain") is not None:
+        L.append("")
+        L.append(f"Extended model ({', '.join(ext.get('terms', []))}) held-out gain: {_fmt(ext['heldout_gain'], 3)} "
+                 f"(N m/kg)², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}.")
+        for k, v in (ext.get("rollout_gain") or {}).items():
+            L.append(f"- rollout {k} reduction: {_fmt(v['gain'], 3)} CI {_fmt(v['ci'], 3)}")
+    nf = rep["baseline"].get("noise_floor")
+    if nf:
+        L.append(f"\nRefit noise floor (two reference refits): {_fmt(nf['gain'], 3)} CI {_fmt(nf['ci'], 3)} (N m/kg)².")
+    plots = rep.get("plots", {})
+    L.append("")
+    L.append("## Plots")
+    for key, title in (("residual_vs_velocity", "Residual vs velocity per joint"),
+                       ("ccf", "Residual cross-correlations with 95% bands"),
+                       ("rollouts", "Rollout error vs horizon, before and after"),
+                       ("gains", "Held-out gain of every fitted candidate")):
+        if key in plots:
+            L.append(f"### {title}\n\n![{title}]({plots[key]})\n")
+    L.append("## Residuals of the base model (held-out)")
+    L.append("| joint | rms | Ljung-Box p (lag 10) | block length | strongest cross-correlation |")
+    L.append("|---|---|---|---|---|")
+    for j, r in rep.get("residuals", {}).items():
+        lb = r["ljung_box"].get("lag10", {}).get("p")
+        best = max(r["ccf"].items(), key=lambda kv: abs(kv[1]["peak"])) if r["ccf"] else None
+        bs = f"{best[0]} {best[1]['peak']:.2f} at lag {best[1]['peak_lag']} (band ±{best[1]['band']:.2f})" if best else "—"
+        L.append(f"| {j} | {_fmt(r['rms'])} | {_fmt(lb, 3)} | {r['block_length']} | {bs} |")
+    L.append("")
+    L.append("## Every candidate")
+    L.append("| effect | joint | status | estimate | 95% CI | unit | held-out gain [CI] | reason |")
+    L.append("|---|---|---|---|---|---|---|---|")
+    for e in findings + rep["rejected"]:
+        L.append(f"| {e['effect']} | {e['joint']} | {e['status']} | {_fmt(e.get('estimate'))} | {_fmt(e.get('ci'), 3)} | "
+                 f"{e.get('unit', '')} | {_fmt(e.get('heldout_gain'), 3)} {_fmt(e.get('heldout_gain_ci'), 3)} | "
+                 f"{e.get('reason', '')} |")
+    L.append("")
+    L.append("## How it was decided")
+    L.append(RULE_TEXT)
+    L.append("")
+    L.append("## Candidate library")
+    L.append(library_table())
+    L.append("")
+    return "\n".join(L)

@@ -1,0 +1,115 @@
+"""A cheap first look at every candidate: post-hoc least squares of the reference residual.
+
+This is *only a screen* that decides which candidates deserve a joint refit (the expensive step). Regressing
+the residual after the fact recovers just a fraction of a parameter — the fitted model has already absorbed
+part of the effect (DIAGNOSIS_PITFALLS.md) — so nothing here is reported as an estimate and nothing is
+accepted on it. A candidate goes on when its post-hoc correction, fitted on the training segments, lowers
+the held-out error (block-bootstrap CI above 0) with the physically allowed sign; a candidate whose
+correction does not help held-out data even after the fact cannot win a joint refit either.
+
+Each candidate is linearised as a feature F (N, n) — the change of the predicted recorded torque per unit
+parameter — so the correction is θ F with one scalar θ:
+  damping: q̇_j on joint j; Coulomb: tanh(q̇_j/ε); Stribeck: e^{−(q̇_j/vs)²} tanh(q̇_j/ε), vs on a grid;
+  delay: τ_e,j(t) − τ_e,j(t−d), d on a grid; gain: τ_e,j; bias: 1;
+  encoder offset and strap: the model's own sensitivity to shifting q_j (by −1, or by −τ_e,j with q̇, q̈
+  shifted by −τ̇_e,j, −τ̈_e,j), by central finite differences.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+
+from ..extensions import COULOMB_EPS
+from . import stats
+from .candidates import LIBRARY
+from .fit import Flat, predict
+
+VS_GRID = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)   # rad/s (m/s): a log grid across plausible Stribeck velocities
+
+
+def _delay_grid(flat: Flat) -> list[int]:
+    K = flat.lag.shape[1] - 1
+    return sorted({k for k in (1, 2, 3, 4, 6, 8, 10, 14, 18) if k <= K})
+
+
+def _input_sensitivity(model, flat: Flat, idx, j: int, dq, dqd, dqdd, h: float) -> torch.Tensor:
+    """(τ̂(x + h δ) − τ̂(x − h δ)) / 2h for an input shift δ = (dq, dqd, dqdd) on joint j."""
+    out = []
+    for sgn in (1.0, -1.0):
+        f = copy.copy(flat)
+        f.q = flat.q.clone(); f.qd = flat.qd.clone(); f.qdd = flat.qdd.clone()
+        f.q[idx, j] += sgn * h * dq
+        if dqd is not None:
+            f.qd[idx, j] += sgn * h * dqd
+        if dqdd is not None:
+            f.qdd[idx, j] += sgn * h * dqdd
+        out.append(predict(model, f, idx))
+    return (out[0] - out[1]) / (2 * h)
+
+
+def features(model, flat: Flat, idx: torch.Tensor, effect: str, j: int, train_r: np.ndarray | None = None,
+             train_idx=None) -> list[tuple[dict, np.ndarray]]:
+    """Candidate features (one or several grid variants) at rows idx: [(extra, F (len(idx), n))]."""
+    n = flat.n
+    N = len(idx)
+    qd = flat.qd[idx, j].numpy().astype(np.float64)
+    onehot = lambda v: np.eye(n)[j][None, :] * v[:, None]
+    if effect == "viscous_damping":
+        return [({}, onehot(qd))]
+    if effect == "coulomb_friction":
+        return [({}, onehot(np.tanh(qd / COULOMB_EPS)))]
+    if effect == "stribeck_friction":
+        return [({"vs": vs}, onehot(np.exp(-(qd / vs) ** 2) * np.tanh(qd / COULOMB_EPS))) for vs in VS_GRID]
+    if effect == "torque_bias":
+        return [({}, onehot(np.ones(N)))]
+    if effect == "torque_gain":
+        return [({}, onehot(flat.tau_e[idx, j].numpy().astype(np.float64)))]
+    if effect == "actuation_delay":
+        te = flat.tau_e[:, j].numpy().astype(np.float64)
+        lag = flat.lag[idx].numpy()
+        return [({"d": k * flat.dt}, onehot(te[lag[:, 0]] - te[lag[:, k]])) for k in _delay_grid(flat)]
+    if effect == "encoder_offset":
+        S = _input_sensitivity(model, flat, idx, j, torch.full((N,), -1.0), None, None, 1e-2)
+        return [({}, S.numpy().astype(np.float64))]
+    if effect == "strap_compliance":
+        # parameter = compliance 1/k; the shift is −τ_e/k (and its derivatives); h in rad/(N m)
+        S = _input_sensitivity(model, flat, idx, j, -flat.tau_e[idx, j], -flat.tau_e_d[idx, j],
+                               -flat.tau_e_dd[idx, j], 1e-4)
+        return [({}, S.numpy().astype(np.float64))]
+    raise ValueError(effect)
+
+
+def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int = 0) -> dict:
+    """Post-hoc fit on training rows, held-out gain with CI; `passes` when it helps held-out data."""
+    tr, he = flat.index("train"), flat.index("held")
+    if len(tr) > 30000:
+        tr = tr[torch.linspace(0, len(tr) - 1, 30000).long()]
+    m_tr = flat.mass[tr].numpy().astype(np.float64)[:, None]
+    m_he = flat.mass[he].numpy().astype(np.float64)[:, None]
+    r_tr = (flat.tau[tr] - predict(model, flat, tr)).numpy().astype(np.float64) / m_tr
+    r_he = (flat.tau[he] - predict(model, flat, he)).numpy().astype(np.float64) / m_he
+    F_tr_all = features(model, flat, tr, effect, j)
+    F_he_all = features(model, flat, he, effect, j)
+    best = None
+    for (extra, F_tr), (_, F_he) in zip(F_tr_all, F_he_all):
+        a = (F_tr / m_tr).reshape(-1)
+        den = float(a @ a)
+        if den <= 0:
+            continue
+        theta = float(a @ r_tr.reshape(-1)) / den
+        sse = float(((r_tr - theta * F_tr / m_tr) ** 2).sum())
+        if best is None or sse < best[0]:
+            best = (sse, theta, extra, F_he)
+    if best is None:
+        return dict(passes=False, theta=0.0, gain=0.0, ci=[0.0, 0.0], reason="feature is identically zero")
+    _, theta, extra, F_he = best
+    d = (r_he ** 2).sum(1) - ((r_he - theta * F_he / m_he) ** 2).sum(1)
+    b = stats.bootstrap_mean(d, n_boot=n_boot, seed=seed)
+    c = LIBRARY[effect]
+    sign_ok = theta > 0 if c.positive else True
+    passes = bool(b["ci"][0] > 0 and sign_ok)
+    reason = "" if passes else ("post-hoc estimate has the unphysical sign" if not sign_ok and b["ci"][0] > 0 else
+                                "no held-out gain even after the fact")
+    return dict(passes=passes, theta=theta, gain=b["mean"], ci=b["ci"], sign_ok=bool(sign_ok), reason=reason, **extra)

@@ -1,0 +1,162 @@
+"""The extension terms of DESIGN.md section 4: signs, passivity, delay, observation corrections, export."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from exolan.diagnose.fit import SlowContextDeLaN
+from exolan.extensions import ExtendedModel, lag_table
+
+
+
+@pytest.fixture(autouse=True)
+def _float64():
+    """float64 for these physics checks, restored afterwards (other test modules share the process)."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
+
+
+def _base(n=2, seed=0, types=None):
+    torch.manual_seed(seed)
+    m = SlowContextDeLaN(types or ("revolute",) * n, n_trials=1, z_dim=2, hidden=16, lim=False, v_scale=5.0)
+    return m.double()
+
+
+def _z(B, m):
+    return m.z_of(torch.zeros(B, dtype=torch.long))
+
+
+def test_dissipation_is_never_negative_for_any_parameters():
+    base = _base()
+    ext = ExtendedModel(base, 2, [("viscous_damping", 0), ("viscous_damping", 1), ("coulomb_friction", 0),
+                                  ("stribeck_friction", 1)], dt=0.005)
+    g = torch.Generator().manual_seed(1)
+    for _ in range(20):   # random raw parameters, including off-diagonal damping and negative raw values
+        with torch.no_grad():
+            for p in ext.ext_parameters():
+                p.copy_(3 * torch.randn(p.shape, generator=g))
+        qd = 5 * torch.randn(500, 2, generator=g)
+        assert float(ext.dissipated_power(qd).detach().min()) >= -1e-12
+        D = ext.damping_matrix()
+        assert torch.allclose(D, D.T) and float(torch.linalg.eigvalsh(D.detach()).min()) >= -1e-12
+
+
+def test_extended_model_is_passive_energy_never_grows_without_input():
+    """Free motion (no torque, no contact) of base + damping + Coulomb + Stribeck: E = ½q̇ᵀHq̇ + V decreases."""
+    base = _base(seed=3)
+    ext = ExtendedModel(base, 2, [("viscous_damping", 0), ("viscous_damping", 1), ("coulomb_friction", 1),
+                                  ("stribeck_friction", 0)], dt=0.001,
+                        init={"viscous_damping": 0.3, "coulomb_friction": 0.5, "stribeck_friction": 0.4})
+    with torch.no_grad():
+        ext.damping_off.fill_(0.4)   # full (coupled) PSD damping
+    B = 16
+    g = torch.Generator().manual_seed(4)
+    q = torch.randn(B, 2, generator=g)
+    qd = 3 * torch.randn(B, 2, generator=g)
+    z = _z(B, base)
+    fv = torch.zeros(B)
+    zero = torch.zeros(B, 2)
+    dt = 5e-4
+    with torch.no_grad():
+        def energy(q, qd):
+            T, V = base.energy(q, qd, z)
+            return T + V
+        E0 = energy(q, qd)
+        E = E0.clone()
+        worst = 0.0
+        # free conservative twin for comparison: the same integrator keeps energy within its own error
+        for k in range(600):
+            qdd = ext.forward_dynamics(q, qd, zero, z, fv)
+            qd = qd + dt * qdd           # semi-implicit Euler (DESIGN.md section 5)
+            q = q + dt * qd
+            En = energy(q, qd)
+            worst = max(worst, float((En - E).max()))
+            E = En
+    # energy decreases overall and never rises by more than the integrator's O(dt²) per-step error
+    assert float((E - E0).max()) < 0
+    assert worst < 1e-4 * float(E0.abs().max())
+
+
+def test_friction_terms_have_the_world_signs():
+    base = _base()
+    ext = ExtendedModel(base, 2, [("viscous_damping", 0), ("coulomb_friction", 1)], dt=0.005,
+                        init={"viscous_damping": 1.5, "coulomb_friction": 2.0})
+    qd = torch.tensor([[1.0, 1.0], [-1.0, -1.0]], dtype=torch.float64)
+    f = ext.friction(qd).detach()
+    # τ += D q̇ and Fc tanh(q̇/ε): the actuator must add torque in the direction of motion
+    assert f[0, 0] == pytest.approx(1.5, rel=1e-6) and f[1, 0] == pytest.approx(-1.5, rel=1e-6)
+    assert f[0, 1] == pytest.approx(2.0 * math.tanh(100.0), rel=1e-6)
+    assert ext.estimate("viscous_damping", 0) == pytest.approx(1.5, rel=1e-6)
+    assert ext.estimate("coulomb_friction", 1) == pytest.approx(2.0, rel=1e-6)
+    assert ext.coulomb()[0] == 0 and ext.damping_matrix()[1, 1] == 0   # inactive joints untouched
+
+
+def test_fractional_delay_is_linear_interpolation_of_the_history():
+    base = _base()
+    dt = 0.005
+    ext = ExtendedModel(base, 2, [("actuation_delay", 1)], dt=dt, max_delay=0.05, init={"actuation_delay": 0.0125})
+    T = 200
+    t = np.arange(T) * dt
+    tau_e = np.stack([np.sin(7 * t), np.cos(5 * t) + t], 1)
+    lag = torch.as_tensor(lag_table([T], 11))
+    hist = torch.as_tensor(tau_e)[lag]                     # (T, 12, 2)
+    app, _, _ = ext.applied_exo(hist)
+    s = 0.0125 / dt                                        # 2.5 samples
+    want = 0.5 * tau_e[np.maximum(np.arange(T) - 2, 0), 1] + 0.5 * tau_e[np.maximum(np.arange(T) - 3, 0), 1]
+    assert np.allclose(app[:, 1].detach().numpy(), want, atol=1e-9)
+    assert np.allclose(app[:, 0].detach().numpy(), tau_e[:, 0])     # no delay on joint 0
+    # the recorded-torque prediction gains τ_e(t) − τ_e(t−d) on the delayed joint only
+    q = torch.zeros(T, 2); z = _z(T, base); fv = torch.zeros(T)
+    d_pred = ext.inverse(q, q, q, z, fv, hist) - base.inverse(q, q, q, z, fv)
+    assert np.allclose(d_pred[:, 1].detach().numpy(), tau_e[:, 1] - want, atol=1e-9)
+    assert np.allclose(d_pred[:, 0].detach().numpy(), 0.0, atol=1e-12)
+    # the delay is differentiable (a gradient reaches its parameter)
+    ext.zero_grad()
+    ext.inverse(q, q, q, z, fv, hist).sum().backward()
+    assert ext.delay_raw.grad is not None and float(ext.delay_raw.grad.abs()[1]) > 0
+
+
+def test_observation_corrections_encoder_offset_and_strap():
+    base = _base()
+    ext = ExtendedModel(base, 2, [("encoder_offset", 0), ("strap_compliance", 1)], dt=0.005,
+                        init={"encoder_offset": 0.03, "strap_compliance": 200.0})
+    B = 10
+    g = torch.Generator().manual_seed(0)
+    q, qd, qdd = (torch.randn(B, 2, generator=g) for _ in range(3))
+    te, ted, tedd = (torch.randn(B, 2, generator=g) for _ in range(3))
+    z = _z(B, base); fv = torch.zeros(B)
+    got = ext.inverse(q, qd, qdd, z, fv, te, ted, tedd)
+    qt = q.clone(); qt[:, 0] -= 0.03; qt[:, 1] -= te[:, 1] / 200.0
+    qdt = qd.clone(); qdt[:, 1] -= ted[:, 1] / 200.0
+    qddt = qdd.clone(); qddt[:, 1] -= tedd[:, 1] / 200.0
+    want = base.inverse(qt, qdt, qddt, z, fv)
+    assert torch.allclose(got, want, atol=1e-10)
+    assert ext.estimate("strap_compliance", 1) == pytest.approx(200.0, rel=1e-6)
+
+
+def test_recording_terms_bias_and_gain():
+    base = _base()
+    ext = ExtendedModel(base, 2, [("torque_bias", 0), ("torque_gain", 1)], dt=0.005,
+                        init={"torque_bias": 0.7, "torque_gain": 1.25})
+    B = 5
+    te = torch.randn(B, 2)
+    q = torch.zeros(B, 2); z = _z(B, base); fv = torch.zeros(B)
+    d = ext.inverse(q, q, q, z, fv, te) - base.inverse(q, q, q, z, fv)
+    assert torch.allclose(d[:, 0], torch.full((B,), 0.7))
+    assert torch.allclose(d[:, 1], (1 - 1 / 1.25) * te[:, 1])
+
+
+def test_ext_tensors_follow_the_design_names_and_shapes():
+    base = _base()
+    ext = ExtendedModel(base, 2, [("viscous_damping", 1), ("coulomb_friction", 0), ("stribeck_friction", 0),
+                                  ("actuation_delay", 1), ("encoder_offset", 0), ("torque_bias", 1),
+                                  ("torque_gain", 0), ("strap_compliance", 1)], dt=0.005)
+    t = ext.ext_tensors()
+    assert set(t) == {"ext.damping", "ext.coulomb", "ext.stribeck_fs", "ext.stribeck_vs", "ext.delay",
+                      "ext.encoder_offset", "ext.torque_bias", "ext.torque_gain", "ext.strap_compliance"}
+    assert t["ext.damping"].shape == (2, 2) and all(v.dtype == np.float64 for v in t.values())
+    assert t["ext.damping"][0, 0] == 0 and t["ext.torque_gain"][1] == 1.0 and np.isinf(t["ext.strap_compliance"][0])
+    assert ExtendedModel(base, 2, [], dt=0.005).ext_tensors() == {}
