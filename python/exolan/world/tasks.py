@@ -70,7 +70,7 @@ TASK_SPECS: dict[str, TaskSpec] = {
                           ((0, 60), (.2, 45), (.45, 10), (.6, 25), (.78, 95), (.92, 75)), duty=.62, k3=.2,
                           cop=(.3, .8)),
     "stairs_down": TaskSpec(CYCLIC, 1.2, ((0, 10), (.3, 18), (.55, 22), (.7, 30), (.85, 20)),
-                            ((0, 10), (.3, 45), (.55, 85), (.72, 95), (.9, 30)), duty=.6, k3=.35, impact=.2,
+                            ((0, 10), (.15, 25), (.35, 35), (.55, 80), (.72, 95), (.9, 30)), duty=.6, k3=.35, impact=.2,
                             cop=(.4, .6)),
     "backward_walk": TaskSpec(CYCLIC, 1.3, WALK_HIP, WALK_KNEE, duty=.62, k3=.2, reverse=True, cop=(.85, .1)),
     "weighted_walk": TaskSpec(CYCLIC, 1.2, WALK_HIP, WALK_KNEE, duty=.63, k3=.25, impact=.1, carry=.2),
