@@ -172,6 +172,8 @@ def test_cli_train_and_evaluate(small_world, tmp_path):
                         "--out", str(run)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert (run / "checkpoint.pt").exists() and (run / "norm.json").exists()
+    phys = json.loads((run / "physics.json").read_text())
+    assert phys["positive_definite"] is True and "cond(H)" in r.stdout
     spec = json.loads((run / "model.json").read_text())
     assert spec["method"] == "delan" and spec["lim"] is False and spec["hidden"] == 16
     assert spec["v_scale"] > 0

@@ -13,6 +13,7 @@ Run directory:
     metrics.jsonl   one line per finished epoch
     checkpoint.pt   model, optimiser, epoch, metrics; written to a temporary file, then renamed
     run.json        status ("running" | "done"), data, timings
+    physics.json    DeLaN-based models: H positive definite, cond(H) range, energy drift of free rollouts
 
 Determinism: parameters are initialised after torch.manual_seed(seed); each epoch draws its batch order and
 rollout starts from a generator seeded by (seed, epoch), so an interrupted run resumed from its last
@@ -398,6 +399,15 @@ def _run(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path, resum
                                              torch_rng=torch.get_rng_state()))
             _atomic_write_bytes(out / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in metrics).encode())
     bar.close()
+    if model.is_lagrangian:
+        # the physics check every user wants: H positive definite with its condition number range on the
+        # data, and the energy of the free conservative model under the integrator
+        from .evaluate import _jsonable, physics_check
+
+        model.eval()
+        phys = physics_check(model, val_trials or train_trials, max_samples=20000, n_rollouts=16)
+        phys["on"] = "validation trials" if val_trials else "training trials"
+        _atomic_json(out / "physics.json", _jsonable(phys))
     run_info.update(status="done", epochs=cfg.epochs,
                     train_seconds=sum(m["seconds"] for m in metrics))
     _atomic_json(out / "run.json", run_info)
@@ -420,4 +430,10 @@ def cli_train(args) -> int:
     m = json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
     print(f"trained {cfg.method}{'' if cfg.lim else ' (no LIM)'} for {m['epoch']} epochs: loss {m['loss']:.4g}"
           + (f", held-out torque MSE {m['val_tau_mse']:.4g} N² m²" if "val_tau_mse" in m else "") + f" -> {out}")
+    if (out / "physics.json").exists():
+        pc = json.loads((out / "physics.json").read_text())
+        e = pc["energy"]["dt"]
+        print(f"physics ({pc['on']}): H positive definite: {pc['positive_definite']}, cond(H) in "
+              f"[{pc['cond_min']:.3g}, {pc['cond_max']:.3g}]; free rollout energy drift / max T: median "
+              f"{e['median_rel_drift']:.3g}, max {e['max_rel_drift']:.3g} at dt = {e['dt']:.4g} s")
     return 0
