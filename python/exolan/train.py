@@ -301,6 +301,15 @@ def train(data_or_split, method: str | None = None, lim: bool | None = None, epo
 
 
 def _run(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path, resume: bool, progress: bool) -> Path:
+    old_threads = torch.get_num_threads()
+    try:
+        return _run_inner(cfg, train_trials, val_trials, data_path, out, resume, progress)
+    finally:
+        torch.set_num_threads(old_threads)        # `threads` applies to this run, not to the caller
+
+
+def _run_inner(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path, resume: bool,
+               progress: bool) -> Path:
     from .evaluate import torque_errors
 
     out.mkdir(parents=True, exist_ok=True)
