@@ -46,6 +46,7 @@ class TrainConfig:
     threads: int = 0               # torch CPU threads; 0 = torch's default
     val_every: int = 10            # epochs between held-out torque MSE figures (0 = only the last epoch)
     checkpoint_every: int = 1      # epochs between checkpoints (the last epoch always)
+    physics_check: bool = True     # DeLaN-based: write physics.json (PD inertia, energy drift) after training
     model: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

@@ -40,7 +40,7 @@ from .rollout import rollout
 CHECKPOINT = "checkpoint.pt"
 # config keys that may differ on --resume: none of them changes the weights an epoch produces
 # (epochs only extends the run; the per-epoch generators do not depend on it)
-_RESUMABLE_CHANGES = ("epochs", "device", "threads", "val_every", "checkpoint_every")
+_RESUMABLE_CHANGES = ("epochs", "device", "threads", "val_every", "checkpoint_every", "physics_check")
 
 
 # -- data ------------------------------------------------------------------------------------------
@@ -408,7 +408,7 @@ def _run_inner(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path,
                                              torch_rng=torch.get_rng_state()))
             _atomic_write_bytes(out / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in metrics).encode())
     bar.close()
-    if model.is_lagrangian:
+    if model.is_lagrangian and cfg.physics_check:
         # the physics check every user wants: H positive definite with its condition number range on the
         # data, and the energy of the free conservative model under the integrator
         from .evaluate import _jsonable, physics_check
