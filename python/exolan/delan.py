@@ -227,7 +227,10 @@ def inverse_dynamics(lag: Lagrangian, q, qd, qdd, z=None) -> torch.Tensor:
 
 def solve_inertia(H: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     """H⁻¹ rhs through a Cholesky factorisation (H is SPD by construction); general n."""
-    Lc = torch.linalg.cholesky(H)
+    Lc, info = torch.linalg.cholesky_ex(H)
+    if bool((info != 0).any()):
+        # only round-off can make L Lᵀ + offset fail to factorise (e.g. offset 0 in float32): fall back to LU
+        return torch.linalg.solve(H, rhs.unsqueeze(-1)).squeeze(-1)
     return torch.cholesky_solve(rhs.unsqueeze(-1), Lc).squeeze(-1)
 
 
