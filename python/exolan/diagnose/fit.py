@@ -271,12 +271,62 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
         loss.backward()
         opt.step()
         sched.step()
-        hist.append(float(loss))
+        hist.append(float(loss.detach()))
         if progress is not None:
-            progress(step, float(loss))
+            progress(step, hist[-1])
     return hist
 
 
 def extend(base: nn.Module, flat: Flat, effects, init: dict | None = None, max_delay: float = 0.1) -> ExtendedModel:
     """A deep copy of `base` wrapped with the section-4 terms (warm start: the base's weights as fitted)."""
     return ExtendedModel(copy.deepcopy(base), flat.n, effects, dt=flat.dt, max_delay=max_delay, init=init)
+
+
+def to_exo_model(base: SlowContextDeLaN, z: torch.Tensor, joint_names=None):
+    """The slow-context base at one fixed context z as a context-free `ExoModel` ("delan" ± LIM).
+
+    z enters only the first layer of each network, so W [φ; z] + b = W_φ φ + (W_z z + b): folding W_z z
+    into the bias gives the identical function without z — the form the weight file and the Rust engine
+    take (DESIGN.md section 3). Used to export the extended model for a chosen trial's (or the mean) z.
+    """
+    from ..models import build_model
+
+    lag = base.delan
+    exo = build_model("delan", lim=base.lim is not None, joint_types=lag.features.joint_types,
+                      context_channels=(), joint_names=joint_names, hidden=lag.L[0].out_features,
+                      softplus_offset=lag.softplus_offset, v_scale=lag.v_scale,
+                      lim_scale=base.lim.lim_scale if base.lim is not None else 0.1).to(torch.float64)
+    k = lag.features.dim
+    z = z.detach().to(torch.float64).reshape(-1)
+    with torch.no_grad():
+        pairs = [(exo.delan.L, lag.L), (exo.delan.V, lag.V)]
+        if base.lim is not None:
+            pairs.append((exo.lim, base.lim))
+        for dst, src in pairs:
+            for i, (ld, ls) in enumerate(zip(dst, src)):
+                W = ls.weight.detach().to(torch.float64)
+                b = ls.bias.detach().to(torch.float64)
+                if i == 0:
+                    ld.weight.copy_(W[:, :k])
+                    ld.bias.copy_(b + W[:, k:] @ z)
+                else:
+                    ld.weight.copy_(W)
+                    ld.bias.copy_(b)
+    return exo
+
+
+def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None, dt: float | None = None,
+                    meta: dict | None = None):
+    """Export base (at context z) + `ext.*` tensors through `exolan.export` (the Rust engine's format)."""
+    from ..export import export
+
+    exo = to_exo_model(ext.base, z, joint_names)
+    eff = [(e, j) for e, js in ext.effects.items() for j in js]
+    twin = ExtendedModel(exo, ext.n, eff, dt=ext.dt, max_delay=ext.max_delay, coulomb_eps=ext.coulomb_eps).to(torch.float64)
+    with torch.no_grad():
+        for name, p in ext.named_parameters():
+            if not name.startswith("base."):
+                dict(twin.named_parameters())[name].copy_(p.detach().to(torch.float64))
+    md = {"dt": repr(float(dt if dt is not None else ext.dt))}
+    md.update(meta or {})
+    return export(twin, path, meta=md), twin
