@@ -1,0 +1,195 @@
+"""The main job (``exolan pipeline --out DIR``, run by ``bash scripts/main.sh``): on built-in defaults,
+
+1. simulate a small world (21 users, 28 tasks, the `small` reproduction scale's trial length);
+2. train and evaluate: the paper's studies at the `small` scale on that world (16 methods x 2 seeds,
+   the forward-dynamics variants, task identification, the real recordings) -> ``DIR/reproduce/report.md``;
+3. evaluate the pipeline's model (ExoLaN + LIM with w_fd and w_ms, seed 0) with ``exolan evaluate``;
+4. export it to the Rust engine's weight file with ``exolan export``;
+5. open-loop rollouts with the Rust engine (``exolan rollout``) and a torch/Rust parity and speed check;
+6. diagnose the world with that model (``exolan diagnose``);
+7. write ``DIR/pipeline.md`` / ``pipeline.json``: every step's status, wall time and outputs.
+
+The training happens once, inside step 2; steps 3-6 reuse its run directory instead of training again,
+which keeps the whole job within ~25 minutes on two cores. Steps 3-6 go through the documented command
+lines of the other parts (each in its own process), so a failure in one step is reported and the
+following steps still run. Re-running the job resumes: finished training runs are never repeated.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+from . import reproduce as rp
+
+SCALE = "small"
+
+
+def _cli(*args: str, log) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "exolan.cli", *args]
+    log("[pipeline] $ exolan " + " ".join(args))
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    tail = (r.stdout + r.stderr).strip().splitlines()[-15:]
+    for line in tail:
+        log("    " + line)
+    if r.returncode != 0:
+        raise RuntimeError(f"exolan {args[0]} exited with {r.returncode}: " + " | ".join(tail[-3:]))
+    return r
+
+
+def _step(name: str, steps: list, log, fn):
+    t0 = time.perf_counter()
+    log(f"[pipeline] == {name}")
+    rec = {"step": name}
+    try:
+        out = fn() or {}
+        rec.update(status="ok", **out)
+    except Exception as exc:  # noqa: BLE001 - recorded, and the job's exit status says so
+        rec.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+        log(f"[pipeline] {name} FAILED: {exc}")
+        log(traceback.format_exc())
+    rec["seconds"] = round(time.perf_counter() - t0, 1)
+    steps.append(rec)
+    log(f"[pipeline] {name}: {rec['status']} ({rec['seconds']:.0f} s)")
+    return rec
+
+
+def pipeline(out: str | Path, log=print, scale: str = SCALE) -> int:
+    out = Path(out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    sc = rp.SCALES[scale]
+    steps: list[dict] = []
+    t_all = time.perf_counter()
+    world = out / "world"
+    ctx: dict = {}
+
+    def simulate():
+        rp.ensure_world(out, sc, rp.RealBackend())
+        return {"data": str(world), "users": sc.users, "tasks": sc.tasks, "seconds_per_trial": sc.seconds}
+
+    def train_and_study():
+        rp.reproduce(scale, out / "reproduce", data=str(world), log=log)
+        spec = rp.RunSpec("world", "exolan", True, sc.w_fd, sc.w_ms, sc.seeds[0], sc.epochs, sc.batch_size)
+        run = out / "reproduce" / "runs" / spec.run_id / "train"
+        if not (run / "checkpoint.pt").exists():
+            raise RuntimeError(f"the pipeline's model was not trained: {run}")
+        ctx["run"] = run
+        return {"report": str(out / "reproduce" / "report.md"), "model_run": str(run)}
+
+    def evaluate():
+        f = out / "evaluation.json"
+        _cli("evaluate", str(ctx["run"]), "--data", str(world), "--out", str(f), log=log)
+        return {"evaluation": str(f)}
+
+    def export():
+        f = out / "exolan.safetensors"
+        _cli("export", str(ctx["run"]), "--out", str(f), log=log)
+        ctx["weights"] = f
+        return {"weights": str(f), "bytes": f.stat().st_size}
+
+    def rust_rollouts():
+        f = out / "rollouts.json"
+        _cli("rollout", str(ctx["weights"]), "--data", str(world), "--horizon", "20", "--out", str(f), log=log)
+        res = {"rollouts": str(f)}
+        res.update(_parity(ctx["run"], ctx["weights"], world, log))
+        return res
+
+    def diagnose():
+        d = out / "diagnosis"
+        _cli("diagnose", str(world), "--model", str(ctx["run"]), "--out", str(d), log=log)
+        res = {"diagnosis": str(d / "diagnosis.md")}
+        j = d / "diagnosis.json"
+        if j.exists():
+            dj = json.loads(j.read_text())
+            res["findings"] = [f"{x.get('effect')}:{x.get('joint')} ({x.get('status')})"
+                               for x in dj.get("findings", [])]
+        return res
+
+    _step("simulate", steps, log, simulate)
+    _step("train + evaluate: the paper's studies (reproduce --scale small)", steps, log, train_and_study)
+    if "run" in ctx:
+        _step("evaluate the pipeline model", steps, log, evaluate)
+        _step("export to the Rust engine", steps, log, export)
+        if "weights" in ctx:
+            _step("Rust rollouts", steps, log, rust_rollouts)
+        _step("diagnose", steps, log, diagnose)
+    total = time.perf_counter() - t_all
+    ok = all(s["status"] == "ok" for s in steps)
+    _write_summary(out, steps, total, ok)
+    log(f"[pipeline] {'done' if ok else 'FINISHED WITH FAILURES'} in {total:.0f} s: {out / 'pipeline.md'}")
+    return 0 if ok else 1
+
+
+def _parity(run: Path, weights: Path, world: Path, log) -> dict:
+    """Open-loop rollouts of the same model on held-out data in torch and in the Rust engine:
+    largest difference and the time each takes (the engine is what a controller would run)."""
+    import numpy as np
+    import torch
+
+    from exolan import data, engine
+    from exolan.train import load_run
+
+    model, _ = load_run(run)
+    model = model.double()
+    split = data.paper_split(data.load(world))
+    tr = next(t for t in split.test_seen if t.task == "walk")
+    H = 20
+    starts = np.flatnonzero(np.convolve(tr.valid.astype(int), np.ones(H + 1, int), "valid") == H + 1)[::10]
+    with torch.no_grad():
+        x = torch.as_tensor(data.context_features(tr))[None]
+        z = model.context(x)[0]
+    idx = starts[:, None] + np.arange(H)[None]
+    tau, fv, zz = tr.tau[idx], tr.f_v[idx], z.numpy()[idx]
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        q, qd = torch.as_tensor(tr.q[starts]), torch.as_tensor(tr.qd[starts])
+        for k in range(H):
+            qdd = model.forward_dynamics(q, qd, torch.as_tensor(tau[:, k]), torch.as_tensor(zz[:, k]),
+                                         torch.as_tensor(fv[:, k]))
+            qd = qd + tr.dt * qdd
+            q = q + tr.dt * qd
+    t_torch = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rq = engine.fast_rollout(str(weights), tr.q[starts], tr.qd[starts], tau, tr.dt, z=zz, f_v=fv)
+    t_rust = time.perf_counter() - t0
+    rq = rq[0] if isinstance(rq, tuple) else rq
+    rq = np.asarray(rq)
+    q_end = rq[:, -1, :] if rq.ndim == 3 else rq
+    diff = float(np.max(np.abs(q_end - q.numpy())))
+    log(f"[pipeline] torch vs Rust rollouts ({len(starts)} x {H} steps): max |Δq| = {diff:.3g} rad; "
+        f"torch {t_torch * 1e3:.1f} ms, Rust {t_rust * 1e3:.2f} ms")
+    return {"parity_max_abs_q": diff, "torch_ms": t_torch * 1e3, "rust_ms": t_rust * 1e3,
+            "n_rollouts": int(len(starts)), "horizon": H}
+
+
+def _write_summary(out: Path, steps: list, total: float, ok: bool) -> None:
+    (out / "pipeline.json").write_text(json.dumps({"ok": ok, "seconds": total, "steps": steps}, indent=1,
+                                                  default=str))
+    L = ["# exolan main job", "", f"Status: **{'ok' if ok else 'finished with failures'}**, total wall time "
+         f"{total / 60:.1f} min on {os.cpu_count()} CPU core(s).", "",
+         "| step | status | wall time [s] | outputs |", "|---|---|---|---|"]
+    for s in steps:
+        outs = {k: v for k, v in s.items() if k not in ("step", "status", "seconds", "error")}
+        desc = "; ".join(f"{k}: {_rel(v, out)}" for k, v in outs.items())
+        if s.get("error"):
+            desc = f"**error**: {s['error']}" + ("; " + desc if desc else "")
+        L.append(f"| {s['step']} | {s['status']} | {s['seconds']:.0f} | {desc} |")
+    L += ["", "The paper's studies and their report: [reproduce/report.md](reproduce/report.md)."]
+    (out / "pipeline.md").write_text("\n".join(L) + "\n")
+
+
+def _rel(v, out: Path):
+    if isinstance(v, str) and v.startswith(str(out)):
+        return v[len(str(out)) + 1:]
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return v
+
+
+def cli_pipeline(args: argparse.Namespace) -> int:
+    return pipeline(args.out)
