@@ -27,7 +27,7 @@ def _stub(monkeypatch, fail=None):
         (out / "report.md").write_text("# report\n")
         calls.append("reproduce")
 
-    def fake_cli(*args, log):
+    def fake_cli(*args, log, timeout=None):
         calls.append(args[0])
         if args[0] == fail:
             raise RuntimeError(f"exolan {args[0]} exited with 1")

@@ -28,12 +28,16 @@ from pathlib import Path
 from . import reproduce as rp
 
 SCALE = "small"
+DIAGNOSE_TIMEOUT = float(os.environ.get("EXOLAN_DIAGNOSE_TIMEOUT", 900))
 
 
-def _cli(*args: str, log) -> subprocess.CompletedProcess:
+def _cli(*args: str, log, timeout: float | None = None) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "exolan.cli", *args]
     log("[pipeline] $ exolan " + " ".join(args))
-    r = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"exolan {args[0]} did not finish within {timeout:.0f} s (stopped)") from None
     tail = (r.stdout + r.stderr).strip().splitlines()[-15:]
     for line in tail:
         log("    " + line)
@@ -101,7 +105,9 @@ def pipeline(out: str | Path, log=print, scale: str = SCALE) -> int:
 
     def diagnose():
         d = out / "diagnosis"
-        _cli("diagnose", str(world), "--model", str(ctx["run"]), "--out", str(d), log=log)
+        # bounded: the main job must finish in reasonable time on two cores
+        _cli("diagnose", str(world), "--model", str(ctx["run"]), "--out", str(d), log=log,
+             timeout=DIAGNOSE_TIMEOUT)
         res = {"diagnosis": str(d / "diagnosis.md")}
         j = d / "diagnosis.json"
         if j.exists():

@@ -440,9 +440,11 @@ def _figures(figdir: Path, scale: Scale, specs, results, summary) -> dict[str, s
         figs["torque_tasks"] = _save(fig, figdir / "torque_tasks.png", plt)
 
     # 3. predicted vs measured accelerations, and 4. open-loop rollouts, for the three FD variants
+    # distinct line styles too: variants trained for few epochs can overlap almost exactly
     variants = [("inverse", 0.0, 0.0, "inverse loss only", "tab:red"),
                 ("w_fd", scale.w_fd, 0.0, "+ w_fd", "tab:green"),
                 ("w_fd+w_ms", scale.w_fd, scale.w_ms, "+ w_fd, w_ms", "tab:blue")]
+    styles = {"inverse": "-", "w_fd": "--", "w_fd+w_ms": ":"}
     va = {k: _arrays(results, specs, "world", "exolan", True, wf, wm, seed0) for k, wf, wm, _, _ in variants}
     acc_tasks = [t for t in ("walk", "squat", "run") if any(f"acc/{t}/t" in a for a in va.values())]
     if acc_tasks:
@@ -456,7 +458,8 @@ def _figures(figdir: Path, scale: Scale, specs, results, summary) -> dict[str, s
                     if f"acc/{task}/t" not in a:
                         continue
                     meas = a[f"acc/{task}/meas"][:, j]
-                    ax.plot(a[f"acc/{task}/t"], a[f"acc/{task}/pred"][:, j], color=col, lw=1, label=f"ExoLaN {lab}")
+                    ax.plot(a[f"acc/{task}/t"], a[f"acc/{task}/pred"][:, j], styles[k], color=col, lw=1.2,
+                            label=f"ExoLaN {lab}")
                     tt = a[f"acc/{task}/t"]
                 if meas is not None:
                     ax.plot(tt, meas, "k-", lw=1.6, label="measured (Savitzky-Golay)")
@@ -485,7 +488,7 @@ def _figures(figdir: Path, scale: Scale, specs, results, summary) -> dict[str, s
                         continue
                     P = a[f"roll/{key}_pred"]
                     for si, s in enumerate(a["roll/starts"]):
-                        ax.plot((s + np.arange(P.shape[1])) * dt, P[si, :, j], color=col, lw=1.2,
+                        ax.plot((s + np.arange(P.shape[1])) * dt, P[si, :, j], styles[k], color=col, lw=1.4,
                                 label=f"ExoLaN {lab}" if si == 0 else None)
                         ax.plot(s * dt, P[si, 0, j], "o", color="k", ms=3)
                 lo, hi = np.nanmin(tr), np.nanmax(tr)
@@ -510,7 +513,8 @@ def _figures(figdir: Path, scale: Scale, specs, results, summary) -> dict[str, s
             for ax, key in zip(axes, ("q", "qd")):
                 y = [ms.get(f"{key}{h}", (np.nan, np.nan))[0] for h in scale.horizons]
                 e = [ms.get(f"{key}{h}", (np.nan, np.nan))[1] for h in scale.horizons]
-                ax.errorbar(scale.horizons, y, yerr=e, marker="o", color=col, capsize=3, label=f"ExoLaN {lab}")
+                ax.errorbar(scale.horizons, y, yerr=e, marker="o", ls=styles[k], color=col, capsize=3,
+                            label=f"ExoLaN {lab}")
         for ax, unit in zip(axes, ("q MSE [rad²]", "q̇ MSE [rad²/s²]")):
             ax.set_yscale("log"); ax.set_xlabel("open-loop steps (5 ms each)"); ax.set_ylabel(unit)
             ax.set_xticks(scale.horizons)
