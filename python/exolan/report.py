@@ -535,16 +535,17 @@ def _figures(figdir: Path, scale: Scale, specs, results, summary) -> dict[str, s
     ti = summary["task_identification"]
     if ti.get("sample_split"):
         fig, ax = plt.subplots(figsize=(7, 3.8))
-        names, vals, errs, cols = [], [], [], []
+        names, vals, errs, cols, majs = [], [], [], [], []
         for split, sl in (("sample_split", "80/20 by sample"), ("trajectory_split", "80/20 by trajectory")):
             for arch, col in (("exolan", "tab:blue"), ("mlp-tcn", "tab:orange")):
                 if arch in ti.get(split, {}):
                     names.append(f"{LABELS[arch].split(' ')[0]}\n{sl}")
                     vals.append(ti[split][arch]["accuracy"][0]); errs.append(ti[split][arch]["accuracy"][1])
-                    cols.append(col)
+                    cols.append(col); majs.append(ti[split][arch]["majority"][0])
         ax.bar(range(len(vals)), vals, yerr=errs, capsize=3, color=cols)
-        maj = ti["sample_split"].get("exolan", ti["sample_split"].get("mlp-tcn", {})).get("majority", (np.nan,))[0]
-        ax.axhline(maj, color="k", ls="--", label=f"majority class ({maj:.2f})")
+        # the majority-class baseline of each split (its test set's share of the training majority class)
+        ax.hlines(majs, np.arange(len(vals)) - 0.45, np.arange(len(vals)) + 0.45, colors="k", linestyles="--",
+                  label="majority-class baseline")
         ax.set_xticks(range(len(vals)), names, fontsize=8)
         ax.set_ylabel("test accuracy"); ax.set_ylim(0, 1)
         ax.set_title("Task identification from z (mean ± std over seeds)")
