@@ -181,11 +181,10 @@ fn first_layer<const FMA: bool>(
 ) {
     let h = l0.out;
     let (a0, tang) = a[..nt * h].split_at_mut(h);
-    a0.copy_from_slice(zb);
+    a0.copy_from_slice(&zb[..h]);
     for (c, &p) in phi.iter().enumerate() {
-        let w = l0.col(c);
-        for i in 0..h {
-            a0[i] = madd::<FMA>(w[i], p, a0[i]);
+        for (ai, wi) in a0.iter_mut().zip(l0.col(c)) {
+            *ai = madd::<FMA>(*wi, p, *ai);
         }
     }
     // ∂a/∂q_k only touches the (one or two) columns of φ that depend on q_k.
@@ -195,28 +194,27 @@ fn first_layer<const FMA: bool>(
         let wa = l0.col(ca);
         let va = dphi[2 * k];
         if cb == usize::MAX {
-            for i in 0..h {
-                dk[i] = wa[i] * va;
+            for (di, wi) in dk.iter_mut().zip(wa) {
+                *di = wi * va;
             }
         } else {
-            let wb = l0.col(cb);
             let vb = dphi[2 * k + 1];
-            for i in 0..h {
-                dk[i] = madd::<FMA>(wb[i], vb, wa[i] * va);
+            for ((di, wai), wbi) in dk.iter_mut().zip(wa).zip(l0.col(cb)) {
+                *di = madd::<FMA>(*wbi, vb, wai * va);
             }
         }
     }
 }
 
 #[inline(always)]
-fn run_net<const FMA: bool>(net: &Mlp, zb: &[f64], phi: &[f64], dphi: &[f64], cols: &[(usize, usize)], nt: usize, bufs: &mut [Vec<f64>]) {
+fn run_net<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f64], dphi: &[f64], cols: &[(usize, usize)], nt: usize, bufs: &mut [Vec<f64>]) {
     first_layer::<FMA>(&net.layers[0], zb, phi, dphi, cols, nt, &mut bufs[0]);
-    mlp_rest::<FMA>(net, nt, bufs);
+    mlp_rest::<FMA, WIDE>(net, nt, bufs);
 }
 
 /// H, (c), g, B, V at the physical coordinates `ws.qp`.
 #[inline(always)]
-fn eval<const FMA: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
     let n = m.n;
     let nt = n + 1;
     let nn = n * n;
@@ -234,10 +232,10 @@ fn eval<const FMA: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool
             ws.dphi[2 * j + 1] = c;
         }
     }
-    run_net::<FMA>(&m.net_l, &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l);
-    run_net::<FMA>(&m.net_v, &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v);
+    run_net::<FMA, WIDE>(&m.net_l, &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l);
+    run_net::<FMA, WIDE>(&m.net_v, &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v);
     if let Some(lim) = &m.net_lim {
-        run_net::<FMA>(lim, &ws.zb_lim, &ws.phi, &ws.dphi, &m.phi_cols, 1, &mut ws.bufs_lim);
+        run_net::<FMA, WIDE>(lim, &ws.zb_lim, &ws.phi, &ws.dphi, &m.phi_cols, 1, &mut ws.bufs_lim);
         let out = ws.bufs_lim.last().unwrap();
         for i in 0..n {
             ws.b[i] = m.meta.lim_scale * out[i];
@@ -328,18 +326,18 @@ fn eval<const FMA: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn eval_fma(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
-    eval::<true>(m, ws, qd, want_c)
+    eval::<true, false>(m, ws, qd, want_c)
 }
 
 #[inline]
 pub(crate) fn eval_dispatch(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
     #[cfg(target_arch = "x86_64")]
-    if m.fma {
-        // SAFETY: `m.fma` is only true when the CPU reports AVX2 and FMA (checked at load).
-        unsafe { eval_fma(m, ws, qd, want_c) };
-        return;
+    match m.simd {
+        // SAFETY: the level is only set when the CPU reports these features (checked at load).
+        crate::model::Simd::Avx2Fma => return unsafe { eval_fma(m, ws, qd, want_c) },
+        crate::model::Simd::Portable => {}
     }
-    eval::<false>(m, ws, qd, want_c)
+    eval::<false, false>(m, ws, qd, want_c)
 }
 
 pub(crate) fn check(name: &str, x: &[f64], n: usize) -> Result<()> {

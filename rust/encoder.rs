@@ -5,8 +5,8 @@
 //! padding. LSTM: the (h, c) state per layer. Both start from zero state, as a trial does in torch.
 
 use crate::error::{Error, Result};
-use crate::math::{madd, sigmoid, tanh};
-use crate::mlp::Dense;
+use crate::math::{sigmoid_slice, tanh_slice};
+use crate::mlp::{dense, Dense};
 use crate::model::Model;
 
 #[derive(Debug, Clone)]
@@ -15,21 +15,24 @@ pub struct TcnBlock {
     pub kernel: usize,
     pub cin: usize,
     pub cout: usize,
-    /// One dense map per tap (no bias); tap t multiplies x[now − (k−1−t)·d].
-    conv1: Vec<Dense>,
-    b1: Vec<f64>,
-    conv2: Vec<Dense>,
-    b2: Vec<f64>,
+    /// The dilated conv as one dense map over the stacked taps [x(t−(k−1)d); …; x(t)]
+    /// (torch's tap t multiplies x[t_now − (k−1−t)·d]).
+    conv1: Dense,
+    conv2: Dense,
     res: Option<Dense>,
 }
 
-fn taps(w: &[f64], cout: usize, cin: usize, k: usize) -> Vec<Dense> {
-    (0..k)
-        .map(|t| {
-            let rows: Vec<f64> = (0..cout * cin).map(|oi| w[oi * k + t]).collect();
-            Dense::from_rows(&rows, &vec![0.0; cout], cout, cin)
-        })
-        .collect()
+/// torch (cout, cin, k) conv weight -> dense (cout, k·cin) with tap-major columns.
+fn stacked(w: &[f64], b: &[f64], cout: usize, cin: usize, k: usize) -> Dense {
+    let mut rows = vec![0.0; cout * k * cin];
+    for o in 0..cout {
+        for i in 0..cin {
+            for t in 0..k {
+                rows[o * k * cin + t * cin + i] = w[(o * cin + i) * k + t];
+            }
+        }
+    }
+    Dense::from_rows(&rows, b, cout, k * cin)
 }
 
 impl TcnBlock {
@@ -50,10 +53,8 @@ impl TcnBlock {
             kernel,
             cin,
             cout,
-            conv1: taps(w1, cout, cin, kernel),
-            b1: b1.to_vec(),
-            conv2: taps(w2, cout, cout, kernel),
-            b2: b2.to_vec(),
+            conv1: stacked(w1, b1, cout, cin, kernel),
+            conv2: stacked(w2, b2, cout, cout, kernel),
             res,
         }
     }
@@ -118,7 +119,9 @@ struct BlockState {
     ring2: Vec<f64>,
     slots: usize,
     pos: usize,
+    stack: Vec<f64>,
     h1: Vec<f64>,
+    r: Vec<f64>,
     y: Vec<f64>,
 }
 
@@ -131,6 +134,7 @@ pub struct EncoderState {
     lstm_c: Vec<Vec<f64>>,
     xin: Vec<f64>,
     gates: Vec<f64>,
+    tanh_c: Vec<f64>,
     /// Samples seen since the last reset.
     pub steps: usize,
 }
@@ -153,90 +157,78 @@ impl EncoderState {
     }
 }
 
-/// y = b + Σ_taps W_t x[now − (k−1−t)d], reading the ring.
+/// Gather the taps x[now − (k−1−t)d], t = 0..k, from the ring into one contiguous vector.
 #[inline(always)]
-fn conv_step<const FMA: bool>(taps: &[Dense], b: &[f64], ring: &[f64], slots: usize, pos: usize, dil: usize, cin: usize, y: &mut [f64]) {
-    y.copy_from_slice(b);
-    let k = taps.len();
-    for (t, d) in taps.iter().enumerate() {
+fn gather(ring: &[f64], slots: usize, pos: usize, dil: usize, k: usize, c: usize, stack: &mut [f64]) {
+    for t in 0..k {
         let lag = (k - 1 - t) * dil;
         let slot = (pos + slots - lag) % slots;
-        let x = &ring[slot * cin..(slot + 1) * cin];
-        for (j, &xj) in x.iter().enumerate() {
-            let w = d.col(j);
-            for i in 0..y.len() {
-                y[i] = madd::<FMA>(w[i], xj, y[i]);
-            }
-        }
+        stack[t * c..(t + 1) * c].copy_from_slice(&ring[slot * c..(slot + 1) * c]);
     }
 }
 
 #[inline(always)]
-fn step<const FMA: bool>(m: &Model, st: &mut EncoderState, z: &mut [f64]) {
+fn step<const FMA: bool, const WIDE: bool>(m: &Model, st: &mut EncoderState, z: &mut [f64]) {
     match m.encoder.as_ref().unwrap() {
         Encoder::Tcn(tcn) => {
             for (bi, blk) in tcn.blocks.iter().enumerate() {
                 let (before, rest) = st.blocks.split_at_mut(bi);
                 let s = &mut rest[0];
                 let x: &[f64] = if bi == 0 { &st.xn } else { &before[bi - 1].y };
-                let (cin, cout, slots, pos) = (blk.cin, blk.cout, s.slots, s.pos);
+                let (cin, cout, slots, pos, k) = (blk.cin, blk.cout, s.slots, s.pos, blk.kernel);
                 s.ring1[pos * cin..(pos + 1) * cin].copy_from_slice(x);
-                conv_step::<FMA>(&blk.conv1, &blk.b1, &s.ring1, slots, pos, blk.dil, cin, &mut s.h1);
+                gather(&s.ring1, slots, pos, blk.dil, k, cin, &mut s.stack);
+                dense::<FMA, WIDE>(&blk.conv1, 1, &s.stack, &mut s.h1);
                 for v in s.h1.iter_mut() {
                     *v = v.max(0.0);
                 }
                 s.ring2[pos * cout..(pos + 1) * cout].copy_from_slice(&s.h1);
-                conv_step::<FMA>(&blk.conv2, &blk.b2, &s.ring2, slots, pos, blk.dil, cout, &mut s.y);
+                gather(&s.ring2, slots, pos, blk.dil, k, cout, &mut s.stack);
+                dense::<FMA, WIDE>(&blk.conv2, 1, &s.stack, &mut s.y);
                 // y = relu(relu(conv2) + res(x))
-                match &blk.res {
-                    Some(r) => {
-                        for i in 0..cout {
-                            let mut acc = r.b[i];
-                            for j in 0..cin {
-                                acc = madd::<FMA>(r.wt[j * cout + i], x[j], acc);
-                            }
-                            s.y[i] = (s.y[i].max(0.0) + acc).max(0.0);
-                        }
+                let r: &[f64] = match &blk.res {
+                    Some(res) => {
+                        dense::<FMA, WIDE>(res, 1, x, &mut s.r);
+                        &s.r
                     }
-                    None => {
-                        for i in 0..cout {
-                            s.y[i] = (s.y[i].max(0.0) + x[i]).max(0.0);
-                        }
-                    }
+                    None => x,
+                };
+                for (yi, ri) in s.y.iter_mut().zip(r) {
+                    *yi = (yi.max(0.0) + ri).max(0.0);
                 }
                 s.pos = (pos + 1) % slots;
             }
             z.copy_from_slice(&st.blocks.last().unwrap().y);
         }
         Encoder::Lstm(lstm) => {
-            let hdim = lstm.hidden;
+            let hd = lstm.hidden;
             for (k, layer) in lstm.layers.iter().enumerate() {
                 let inp = layer.inp;
                 if k == 0 {
                     st.xin[..inp].copy_from_slice(&st.xn);
                 } else {
-                    let (prev, _) = st.lstm_h.split_at(k);
-                    st.xin[..inp].copy_from_slice(&prev[k - 1]);
+                    st.xin[..inp].copy_from_slice(&st.lstm_h[k - 1]);
                 }
-                st.xin[inp..inp + hdim].copy_from_slice(&st.lstm_h[k]);
-                let cell = &layer.cell;
-                let gates = &mut st.gates[..4 * hdim];
-                gates.copy_from_slice(&cell.b);
-                for j in 0..inp + hdim {
-                    let xj = st.xin[j];
-                    let w = cell.col(j);
-                    for i in 0..4 * hdim {
-                        gates[i] = madd::<FMA>(w[i], xj, gates[i]);
-                    }
+                st.xin[inp..inp + hd].copy_from_slice(&st.lstm_h[k]);
+                let gates = &mut st.gates[..4 * hd];
+                dense::<FMA, WIDE>(&layer.cell, 1, &st.xin[..inp + hd], gates);
+                // gate order i, f, g, o
+                let (ifg, rest) = gates.split_at_mut(2 * hd);
+                let (g, o) = rest.split_at_mut(hd);
+                sigmoid_slice::<FMA>(ifg);
+                tanh_slice::<FMA>(g);
+                sigmoid_slice::<FMA>(o);
+                let (ig, fg) = ifg.split_at(hd);
+                let c = &mut st.lstm_c[k];
+                let tc = &mut st.tanh_c[..hd];
+                for i in 0..hd {
+                    c[i] = fg[i] * c[i] + ig[i] * g[i];
+                    tc[i] = c[i];
                 }
-                let (h, c) = (&mut st.lstm_h[k], &mut st.lstm_c[k]);
-                for i in 0..hdim {
-                    let ig = sigmoid::<FMA>(gates[i]);
-                    let fg = sigmoid::<FMA>(gates[hdim + i]);
-                    let gg = tanh::<FMA>(gates[2 * hdim + i]);
-                    let og = sigmoid::<FMA>(gates[3 * hdim + i]);
-                    c[i] = fg * c[i] + ig * gg;
-                    h[i] = og * tanh::<FMA>(c[i]);
+                tanh_slice::<FMA>(tc);
+                let h = &mut st.lstm_h[k];
+                for i in 0..hd {
+                    h[i] = o[i] * tc[i];
                 }
             }
             z.copy_from_slice(lstm_top(st));
@@ -251,7 +243,7 @@ fn lstm_top(st: &EncoderState) -> &[f64] {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn step_fma(m: &Model, st: &mut EncoderState, z: &mut [f64]) {
-    step::<true>(m, st, z)
+    step::<true, false>(m, st, z)
 }
 
 impl Model {
@@ -264,6 +256,7 @@ impl Model {
             lstm_c: vec![],
             xin: vec![],
             gates: vec![],
+            tanh_c: vec![],
             steps: 0,
         };
         match &self.encoder {
@@ -276,7 +269,9 @@ impl Model {
                         ring2: vec![0.0; b.slots() * b.cout],
                         slots: b.slots(),
                         pos: 0,
+                        stack: vec![0.0; b.kernel * b.cin.max(b.cout)],
                         h1: vec![0.0; b.cout],
+                        r: vec![0.0; b.cout],
                         y: vec![0.0; b.cout],
                     })
                     .collect();
@@ -286,6 +281,7 @@ impl Model {
                 st.lstm_c = vec![vec![0.0; l.hidden]; l.layers.len()];
                 st.xin = vec![0.0; l.c_in.max(l.hidden) + l.hidden];
                 st.gates = vec![0.0; 4 * l.hidden];
+                st.tanh_c = vec![0.0; l.hidden];
             }
             None => {}
         }
@@ -314,13 +310,13 @@ impl Model {
             st.xn[i] = if v.is_finite() { v } else { 0.0 };
         }
         #[cfg(target_arch = "x86_64")]
-        if self.fma {
-            // SAFETY: AVX2 and FMA were detected at load.
-            unsafe { step_fma(self, st, z) };
-            st.steps += 1;
-            return Ok(());
+        match self.simd {
+            // SAFETY: the level is only set when the CPU reports these features (checked at load).
+            crate::model::Simd::Avx2Fma => unsafe { step_fma(self, st, z) },
+            crate::model::Simd::Portable => step::<false, false>(self, st, z),
         }
-        step::<false>(self, st, z);
+        #[cfg(not(target_arch = "x86_64"))]
+        step::<false, false>(self, st, z);
         st.steps += 1;
         Ok(())
     }

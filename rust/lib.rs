@@ -32,7 +32,7 @@ pub mod synth;
 pub use delan::{ExoTorque, Workspace, COND_MAX};
 pub use encoder::EncoderState;
 pub use error::{Error, Result};
-pub use model::{EncoderKind, JointType, Meta, Model};
+pub use model::{EncoderKind, JointType, Meta, Model, Simd};
 pub use rollout::{Inputs, ZSeq};
 
 #[cfg(feature = "python")]

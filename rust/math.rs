@@ -113,6 +113,14 @@ pub(crate) fn tanh_slice<const FMA: bool>(xs: &mut [f64]) {
     }
 }
 
+/// In-place logistic sigmoid over a slice (vectorised loop).
+#[inline(always)]
+pub(crate) fn sigmoid_slice<const FMA: bool>(xs: &mut [f64]) {
+    for x in xs.iter_mut() {
+        *x = sigmoid::<FMA>(*x);
+    }
+}
+
 /// torch's softplus (beta 1, threshold 20): x for x > 20, else log(1 + e^x).
 #[inline(always)]
 pub(crate) fn softplus(x: f64) -> f64 {

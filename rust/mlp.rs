@@ -17,6 +17,8 @@ pub struct Dense {
     pub out: usize,
     /// Transposed weights, `inp * out`.
     pub wt: Vec<f64>,
+    /// Row-major weights, `out * inp` (for the narrow output layers).
+    pub rows: Vec<f64>,
     pub b: Vec<f64>,
 }
 
@@ -30,7 +32,7 @@ impl Dense {
                 wt[j * out + i] = w[i * inp + j];
             }
         }
-        Dense { inp, out, wt, b: b.to_vec() }
+        Dense { inp, out, wt, rows: w.to_vec(), b: b.to_vec() }
     }
 
     /// Column j of W (all outputs' weights for input j).
@@ -63,48 +65,84 @@ impl Mlp {
         let l0 = &self.layers[0];
         zb.copy_from_slice(&l0.b);
         for (j, &zj) in z.iter().enumerate() {
-            let w = l0.col(split + j);
-            for i in 0..l0.out {
-                zb[i] += w[i] * zj;
+            for (zi, wi) in zb.iter_mut().zip(l0.col(split + j)) {
+                *zi += wi * zj;
             }
         }
     }
 }
 
-/// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks, outputs in register blocks of 8.
+/// Outputs `i0..i0+BW` of `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks, accumulated in registers;
+/// each output's sum runs over the inputs in order (b + w_0 x_0 + w_1 x_1 + …).
 #[inline(always)]
-fn dense_nt<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64]) {
+fn block<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
     let (inp, out) = (d.inp, d.out);
-    let x = &x[..NT * inp];
-    let y = &mut y[..NT * out];
-    let wt = &d.wt[..inp * out];
-    let b = &d.b[..out];
-    let mut i0 = 0;
-    while i0 + 8 <= out {
-        let mut acc = [[0.0f64; 8]; NT];
-        acc[0].copy_from_slice(&b[i0..i0 + 8]);
-        for j in 0..inp {
-            let w: &[f64; 8] = wt[j * out + i0..j * out + i0 + 8].try_into().unwrap();
-            for k in 0..NT {
-                let xk = x[k * inp + j];
-                for i in 0..8 {
-                    acc[k][i] = madd::<FMA>(w[i], xk, acc[k][i]);
+    assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + BW <= out);
+    assert!(d.wt.len() >= inp * out && d.b.len() >= out);
+    let mut acc = [[0.0f64; BW]; NT];
+    acc[0].copy_from_slice(&d.b[i0..i0 + BW]);
+    let wt = d.wt.as_ptr();
+    let xp = x.as_ptr();
+    for j in 0..inp {
+        // SAFETY: j < inp and i0 + BW <= out, so j*out + i0 + BW <= inp*out <= wt.len() (asserted);
+        // k*inp + j < NT*inp <= x.len() (asserted). Unchecked reads keep bounds checks out of the
+        // innermost loop, which is most of the engine's time.
+        let w: &[f64; BW] = unsafe { &*(wt.add(j * out + i0) as *const [f64; BW]) };
+        for k in 0..NT {
+            let xk = unsafe { *xp.add(k * inp + j) };
+            for i in 0..BW {
+                acc[k][i] = madd::<FMA>(w[i], xk, acc[k][i]);
+            }
+        }
+    }
+    for k in 0..NT {
+        y[k * out + i0..k * out + i0 + BW].copy_from_slice(&acc[k]);
+    }
+}
+
+/// Small output layers (the 3 values of L, the 1 of V, …): dot products along the inputs with 8
+/// partial sums (lane l takes inputs j ≡ l mod 8), reduced in a fixed tree — short dependency
+/// chains instead of one 64-long chain. The order is fixed by the source, not by the vector width.
+#[inline(always)]
+fn narrow<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+    let (inp, out) = (d.inp, d.out);
+    for i in i0..out {
+        let wr = &d.rows[i * inp..(i + 1) * inp];
+        for k in 0..NT {
+            let xk = &x[k * inp..(k + 1) * inp];
+            let mut acc = [0.0f64; 8];
+            let mut wc = wr.chunks_exact(8);
+            let mut xc = xk.chunks_exact(8);
+            for (w8, x8) in (&mut wc).zip(&mut xc) {
+                for l in 0..8 {
+                    acc[l] = madd::<FMA>(w8[l], x8[l], acc[l]);
                 }
             }
-        }
-        for k in 0..NT {
-            y[k * out + i0..k * out + i0 + 8].copy_from_slice(&acc[k]);
-        }
-        i0 += 8;
-    }
-    for i in i0..out {
-        for k in 0..NT {
-            let mut s = if k == 0 { b[i] } else { 0.0 };
-            for j in 0..inp {
-                s = madd::<FMA>(wt[j * out + i], x[k * inp + j], s);
+            for (l, (w, xv)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
+                acc[l] = madd::<FMA>(*w, *xv, acc[l]);
             }
-            y[k * out + i] = s;
+            let s = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+            y[k * out + i] = if k == 0 { d.b[i] + s } else { s };
         }
+    }
+}
+
+/// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
+/// outputs, then of 4, then the narrow path for the last < 4 outputs.
+#[inline(always)]
+fn dense_nt<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64]) {
+    let out = d.out;
+    let mut i0 = 0;
+    while i0 + BW <= out {
+        block::<NT, FMA, BW>(d, x, y, i0);
+        i0 += BW;
+    }
+    while i0 + 4 <= out {
+        block::<NT, FMA, 4>(d, x, y, i0);
+        i0 += 4;
+    }
+    if i0 < out {
+        narrow::<NT, FMA>(d, x, y, i0);
     }
 }
 
@@ -121,22 +159,35 @@ fn dense_dyn<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
         }
         for j in 0..inp {
             let xk = x[k * inp + j];
-            let w = d.col(j);
-            for i in 0..out {
-                yk[i] = madd::<FMA>(w[i], xk, yk[i]);
+            for (yi, wi) in yk.iter_mut().zip(d.col(j)) {
+                *yi = madd::<FMA>(*wi, xk, *yi);
             }
         }
     }
 }
 
+/// Dispatch on the tangent count. Register blocks are sized so the accumulators, the weight loads
+/// and the broadcast fit the 16 registers (AVX2: 3 x 3 ymm accumulators for value + 2 tangents;
+/// portable SSE2: 4 outputs). The block width only changes which outputs are computed together,
+/// never the order of any sum. (`WIDE` is reserved for a wider-register variant; unused.)
 #[inline(always)]
-pub(crate) fn dense<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
-    match nt {
-        1 => dense_nt::<1, FMA>(d, x, y),
-        2 => dense_nt::<2, FMA>(d, x, y),
-        3 => dense_nt::<3, FMA>(d, x, y),
-        4 => dense_nt::<4, FMA>(d, x, y),
-        _ => dense_dyn::<FMA>(d, nt, x, y),
+pub(crate) fn dense<const FMA: bool, const WIDE: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
+    if FMA {
+        match nt {
+            1 => dense_nt::<1, FMA, 16>(d, x, y),
+            2 => dense_nt::<2, FMA, 12>(d, x, y),
+            3 => dense_nt::<3, FMA, 12>(d, x, y),
+            4 => dense_nt::<4, FMA, 8>(d, x, y),
+            _ => dense_dyn::<FMA>(d, nt, x, y),
+        }
+    } else {
+        match nt {
+            1 => dense_nt::<1, FMA, 8>(d, x, y),
+            2 => dense_nt::<2, FMA, 4>(d, x, y),
+            3 => dense_nt::<3, FMA, 4>(d, x, y),
+            4 => dense_nt::<4, FMA, 4>(d, x, y),
+            _ => dense_dyn::<FMA>(d, nt, x, y),
+        }
     }
 }
 
@@ -147,8 +198,8 @@ pub(crate) fn tanh_tangent<const FMA: bool>(a: &mut [f64], width: usize, nt: usi
     tanh_slice::<FMA>(h);
     for k in 0..nt - 1 {
         let dk = &mut rest[k * width..(k + 1) * width];
-        for i in 0..width {
-            dk[i] *= 1.0 - h[i] * h[i];
+        for (di, hi) in dk.iter_mut().zip(h.iter()) {
+            *di *= 1.0 - hi * hi;
         }
     }
 }
@@ -156,12 +207,12 @@ pub(crate) fn tanh_tangent<const FMA: bool>(a: &mut [f64], width: usize, nt: usi
 /// Run layers 1.. of `mlp` given layer 0's pre-activations (with tangents) in `bufs[0]`.
 /// The output layer's values and tangents end up in `bufs[last]`.
 #[inline(always)]
-pub(crate) fn mlp_rest<const FMA: bool>(mlp: &Mlp, nt: usize, bufs: &mut [Vec<f64>]) {
+pub(crate) fn mlp_rest<const FMA: bool, const WIDE: bool>(mlp: &Mlp, nt: usize, bufs: &mut [Vec<f64>]) {
     for l in 1..mlp.layers.len() {
         let (prev, next) = bufs.split_at_mut(l);
         let a = &mut prev[l - 1];
         tanh_tangent::<FMA>(a, mlp.layers[l - 1].out, nt);
-        dense::<FMA>(&mlp.layers[l], nt, a, &mut next[0]);
+        dense::<FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0]);
     }
 }
 
@@ -171,14 +222,23 @@ mod tests {
 
     #[test]
     fn dense_blocks_agree_with_naive() {
-        let (out, inp) = (19, 7);
+        for level in 0..2 {
+            dense_check(level);
+        }
+    }
+
+    fn dense_check(fma: u8) {
+        let (out, inp) = (69, 7);
         let w: Vec<f64> = (0..out * inp).map(|i| ((i * 37 % 23) as f64 - 11.0) / 7.0).collect();
         let b: Vec<f64> = (0..out).map(|i| i as f64 * 0.1 - 0.5).collect();
         let d = Dense::from_rows(&w, &b, out, inp);
         for nt in 1..=6 {
             let x: Vec<f64> = (0..nt * inp).map(|i| (i as f64 * 0.37).sin()).collect();
             let mut y = vec![0.0; nt * out];
-            dense::<false>(&d, nt, &x, &mut y);
+            match fma {
+                0 => dense::<false, false>(&d, nt, &x, &mut y),
+                _ => dense::<true, false>(&d, nt, &x, &mut y),
+            }
             for k in 0..nt {
                 for i in 0..out {
                     let mut s = if k == 0 { b[i] } else { 0.0 };

@@ -75,8 +75,8 @@ pub struct Model {
     pub(crate) ext: Ext,
     /// Per joint: (column of φ, column of the second entry or usize::MAX for prismatic).
     pub(crate) phi_cols: Vec<(usize, usize)>,
-    /// Use the AVX2+FMA code path (decided once, at load, from the CPU).
-    pub(crate) fma: bool,
+    /// Code path, decided once at load from the CPU.
+    pub(crate) simd: Simd,
 }
 
 fn meta_err(key: &str, msg: impl Into<String>) -> Error {
@@ -436,7 +436,7 @@ impl Model {
             encoder,
             ext,
             phi_cols,
-            fma: detect_fma(),
+            simd: detect_simd(),
         })
     }
 
@@ -448,23 +448,42 @@ impl Model {
         }
     }
 
-    /// Force the portable (non-FMA) code path, e.g. to compare the two in tests.
-    pub fn set_simd(&mut self, on: bool) {
-        self.fma = on && detect_fma();
+    /// Choose the code path: `Some(level)` forces it (clamped to what the CPU has), `None` the best
+    /// available. The AVX2 path uses fused multiply-add; the portable path (separate multiply and
+    /// add) may differ from it in the last bits. (An AVX-512 variant was measured 3x slower on this
+    /// machine's Xeon and dropped.)
+    pub fn set_simd(&mut self, level: Option<Simd>) {
+        let best = detect_simd();
+        self.simd = match level {
+            None => best,
+            Some(l) => l.min(best),
+        };
     }
 
-    pub fn simd(&self) -> bool {
-        self.fma
+    pub fn simd(&self) -> Simd {
+        self.simd
     }
 }
 
-fn detect_fma() -> bool {
+/// Instruction-set level of the hot loops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Simd {
+    /// Plain SSE2, separate multiply and add.
+    Portable,
+    /// AVX2 with fused multiply-add.
+    Avx2Fma,
+}
+
+fn detect_simd() -> Simd {
     #[cfg(target_arch = "x86_64")]
     {
-        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+        if std::env::var_os("EXOLAN_PORTABLE").is_some() {
+            return Simd::Portable;
+        }
+        let fma = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
+        if fma {
+            return Simd::Avx2Fma;
+        }
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    Simd::Portable
 }

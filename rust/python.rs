@@ -285,10 +285,13 @@ impl Engine {
         }
         Ok(d)
     }
-    /// Whether the AVX2+FMA code path is in use.
+    /// Code path in use: "avx2-fma" or "portable".
     #[getter]
-    fn simd(&self) -> bool {
-        self.model.simd()
+    fn simd(&self) -> &'static str {
+        match self.model.simd() {
+            crate::Simd::Avx2Fma => "avx2-fma",
+            crate::Simd::Portable => "portable",
+        }
     }
 
     /// τ (N, n) from q, qd, qdd (N, n), z (N, dz), f_v (N,), optional exo torques (N, n).

@@ -196,22 +196,43 @@ fn unforced_motion_conserves_energy() {
 }
 
 #[test]
-fn simd_and_portable_paths_agree() {
-    let mut m = model(&SynthConfig::default());
-    let n = m.n;
-    let q = [0.4, 1.1];
-    let qd = [0.7, -2.2];
-    let qdd = [3.0, -1.0];
-    let mut ws = ws_with_z(&m, 5);
-    let mut a = vec![0.0; n];
-    m.inverse_dynamics(&mut ws, &q, &qd, &qdd, 300.0, None, &mut a).unwrap();
-    let was = m.simd();
-    m.set_simd(false);
-    let mut ws = ws_with_z(&m, 5);
-    let mut b = vec![0.0; n];
-    m.inverse_dynamics(&mut ws, &q, &qd, &qdd, 300.0, None, &mut b).unwrap();
-    for i in 0..n {
-        assert!((a[i] - b[i]).abs() < 1e-12 * (1.0 + a[i].abs()), "simd {was}: {} vs {}", a[i], b[i]);
+fn simd_levels_agree() {
+    // The AVX2+FMA and portable paths agree to rounding; forcing a level works.
+    use exolan::Simd;
+    for cfg in configs() {
+        let mut m = model(&cfg);
+        let n = m.n;
+        let q = pseudo(1, n, 1.0);
+        let qd = pseudo(2, n, 2.0);
+        let qdd = pseudo(3, n, 5.0);
+        let run = |m: &Model| {
+            let mut ws = ws_with_z(m, 5);
+            let mut tau = vec![0.0; n];
+            m.inverse_dynamics(&mut ws, &q, &qd, &qdd, 300.0, None, &mut tau).unwrap();
+            let mut z = vec![0.0; m.dz];
+            if m.dz > 0 {
+                let mut st = m.encoder_state();
+                for k in 0..70 {
+                    let x: Vec<f64> = pseudo(k, m.context_dim(), 2.0);
+                    m.encode_step(&mut st, &x, &mut z).unwrap();
+                }
+            }
+            (tau, z)
+        };
+        let best = m.simd();
+        let (a, za) = run(&m);
+        let (b, zb) = run(&m);
+        assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
+        assert_eq!(za.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), zb.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
+        m.set_simd(Some(Simd::Portable));
+        assert_eq!(m.simd(), Simd::Portable);
+        let (c, zc) = run(&m);
+        for i in 0..n {
+            assert!((a[i] - c[i]).abs() < 1e-12 * (1.0 + a[i].abs()), "{best:?}: {} vs {}", a[i], c[i]);
+        }
+        for i in 0..zc.len() {
+            assert!((za[i] - zc[i]).abs() < 1e-12 * (1.0 + za[i].abs()));
+        }
     }
 }
 
