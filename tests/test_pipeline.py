@@ -45,6 +45,13 @@ def _stub(monkeypatch, fail=None):
     monkeypatch.setattr(R, "ensure_world", fake_world)
     monkeypatch.setattr(R, "reproduce", fake_reproduce)
     monkeypatch.setattr(P, "_cli", fake_cli)
+    def fake_py(code, argv, log, timeout, label):
+        import os
+        calls.append("diagnose")
+        os.makedirs(argv[2], exist_ok=True)
+        json.dump({"findings": []}, open(os.path.join(argv[2], "diagnosis.json"), "w"))
+
+    monkeypatch.setattr(P, "_run_py", fake_py)
     monkeypatch.setattr(P, "_parity", lambda *a: {"parity_max_abs_q": 0.0})
     return calls
 
