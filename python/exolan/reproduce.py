@@ -18,6 +18,16 @@ same arguments skips every finished job (and the training itself resumes from it
 Jobs run in a local process pool (``--workers``) or as Ray tasks (``--ray ADDRESS``); both call the same
 pure function :func:`run_job`, so both give the same numbers.
 
+Scales: ``small`` (~15 min on two cores: 21 users x 28 tasks of 2.5 s, 4 epochs, 2 seeds; part of the main
+job), ``medium`` (20 s trials, 100 epochs, 3 seeds: hours), ``paper`` (the default world, 1000 epochs,
+5 seeds). On a machine with CUDA, ``medium`` and ``paper`` train on the GPU (``EXOLAN_DEVICE=cpu|cuda``
+overrides), two runs at a time; evaluation always runs on the CPU in the worker.
+
+Ray (``pip install exolan[ray]``): ``--ray ADDRESS`` submits every job as a Ray task (one CPU each, or
+``threads`` CPUs). The workers must see the same paths as the driver (a shared file system for ``--out``,
+the data and the real recordings) and have exolan installed; results travel back to the driver, which
+alone writes the completion markers.
+
 The backend is the seam between this orchestration and the other parts of exolan (world, reader,
 training, models). ``RealBackend`` uses them; tests may pass a stand-in by its import path
 (``EXOLAN_REPRODUCE_BACKEND=module:Class``) so that the orchestration is testable in seconds.
