@@ -13,9 +13,10 @@ statistic of the data at hand):
    the gain's CI lower bound exceeds the larger absolute end of the noise floor's CI.
 3. **Better than its null** (effects driven by the recorded exo torque only: delay, gain, strap). Assistive
    torque is a lagged, scaled copy of the human torque, so such terms can soak up model error. The same
-   candidate is refitted with the exo torque circularly shifted within each trial by half its length
-   (same amplitude and spectrum, no relation in time); required: the real candidate beats its null on
-   held-out data (paired CI of the difference > 0).
+   candidate is refitted with the exo torque taken from the *future* — at the lag (≥ 25 ms) where it
+   correlates most with the training residual: the future exo torque cannot act on the limb now but shares
+   its correlation with the human torque. Required: the real candidate beats its null on held-out data
+   (paired CI of the difference > 0). A delay whose CI reaches the largest delay searched is not identified.
 4. **Valid sign and identifiable.** Signs are enforced by the parametrisation (D PSD, Fc, Fs, d, 1/k ≥ 0);
    a parameter that the fit drives to its boundary is not identified. The parameter's 95% CI (Gauss-Newton
    sandwich with Newey-West/HAC covariance from statsmodels on the training residuals, lags = ACF block
@@ -68,17 +69,36 @@ def _log(s: Settings, msg: str):
         print(f"[diagnose {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-def _rotated(flat: Flat) -> Flat:
-    """The same data with the exo torque (and its derivatives) circularly shifted by half of each trial."""
+def _advanced(flat: Flat, k: np.ndarray) -> Flat:
+    """The same data with the exo torque of joint j taken k[j] samples in the *future* (clamped at the end).
+
+    The future exo torque cannot act on the limb now, but an assistive controller makes it a copy of the
+    human torque now: a term that explains held-out data as well from the future exo torque as from the
+    present one exploits that correlation, not physics.
+    """
     f = copy.copy(flat)
-    perm = []
+    f.tau_e, f.tau_e_d, f.tau_e_dd = flat.tau_e.clone(), flat.tau_e_d.clone(), flat.tau_e_dd.clone()
     start = 0
     for T in flat.lengths:
-        perm.append(start + (np.arange(T) + T // 2) % T)
+        t = np.arange(T)
+        for j in range(flat.n):
+            src = torch.as_tensor(start + np.minimum(t + int(k[j]), T - 1))
+            for name in ("tau_e", "tau_e_d", "tau_e_dd"):
+                getattr(f, name)[start:start + T, j] = getattr(flat, name)[src, j]
         start += T
-    perm = torch.as_tensor(np.concatenate(perm))
-    f.tau_e, f.tau_e_d, f.tau_e_dd = flat.tau_e[perm], flat.tau_e_d[perm], flat.tau_e_dd[perm]
     return f
+
+
+def _leak_lag(model, flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) -> int:
+    """Future lag (samples) at which the exo torque of joint j correlates most with the training residual."""
+    tr = flat.index("train")
+    if len(tr) > 40000:
+        tr = tr[:40000]
+    r = (flat.tau[tr, j] - predict(model, flat, tr)[:, j]).numpy().astype(np.float64)
+    cc = stats.cross_correlation(r, flat.tau_e[tr, j].numpy().astype(np.float64), max_lag)
+    lags = np.asarray(cc["lags"]); vals = np.abs(np.asarray(cc["ccf"]))
+    sel = lags <= -min_lag          # negative lag: the exo torque *after* the residual sample
+    return int(-lags[sel][np.argmax(vals[sel])]) if sel.any() else min_lag
 
 
 def _param_ci(model: ExtendedModel, flat: Flat, effect: str, j: int) -> dict:
@@ -152,11 +172,38 @@ def _report_param(effect: str, pci: dict) -> tuple[float, list[float]]:
     return est, [lo, hi]
 
 
-def _identifiable(effect: str, pci: dict) -> bool:
+def _screen_init(effect: str, sc: dict) -> dict:
+    """Warm start of the physical parameter from the post-hoc screen (a fraction of it, right sign)."""
+    th = float(sc.get("theta", 0.0))
+    init = {}
+    if effect in ("viscous_damping", "coulomb_friction", "stribeck_friction") and th > 0:
+        init[effect] = th
+    if effect == "stribeck_friction" and "vs" in sc:
+        init["stribeck_vs"] = sc["vs"]
+    if effect == "actuation_delay" and "d" in sc:
+        init["actuation_delay"] = sc["d"]
+    if effect == "torque_gain" and th < 0.9:
+        init[effect] = 1.0 / (1.0 - th)
+    if effect == "strap_compliance" and th > 0:
+        init[effect] = 1.0 / th
+    if effect in ("encoder_offset", "torque_bias"):
+        init[effect] = th
+    return init
+
+
+def _identifiable(effect: str, pci: dict, max_delay: float = float("inf")) -> bool:
+    """The parameter's CI excludes the no-effect value and stays inside the searched physical range.
+
+    A delay whose CI reaches the largest delay searched means the data want "more of this feature", not a
+    particular lag: the exo torque is standing in for something else (it is a lagged copy of the human
+    torque), so it is not identified as a delay.
+    """
     lo, hi = pci["ci"]
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return False
     c = LIBRARY[effect]
+    if effect == "actuation_delay" and hi >= 0.95 * max_delay:
+        return False
     if effect == "strap_compliance":
         return lo > 0.0          # compliance CI excludes 0 ⇔ stiffness CI excludes ∞
     if c.positive:
@@ -254,7 +301,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 entry.update(status="rejected", reason="no exoskeleton torque recorded: not testable")
                 continue
             sc = screen(ref, flat, effect, j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
-            entry["screen"] = dict(gain=sc["gain"], ci=sc["ci"], theta=sc["theta"])
+            entry["screen"] = {k: v for k, v in sc.items() if k in ("gain", "ci", "theta", "vs", "d")}
             if not sc["passes"]:
                 entry.update(status="absorbable" if c.kind == "absorbable" else "rejected",
                              reason=("a flexible conservative model represents this effect; " if c.kind == "absorbable"
@@ -264,11 +311,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                         f"{sc['reason']}")
                 continue
             t1 = time.time()
-            init = {}
-            if effect == "stribeck_friction" and "vs" in sc:
-                init["stribeck_vs"] = sc["vs"]
-            if effect == "actuation_delay" and "d" in sc:
-                init["actuation_delay"] = sc["d"]
+            init = _screen_init(effect, sc)
             ext = extend(base, flat, [(effect, j)], init=init, max_delay=s.max_delay)
             train(ext, flat, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
             e = sq_errors(ext, flat, held).sum(1)
@@ -277,7 +320,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             est, ci = _report_param(effect, pci)
             entry.update(estimate=est, ci=ci, heldout_gain=g["gain"], heldout_gain_ci=g["ci"],
                          relative_gain=g["rel"], relative_gain_ci=g["rel_ci"], block=g["block"],
-                         identifiable=_identifiable(effect, pci), fit_seconds=round(time.time() - t1, 1))
+                         identifiable=_identifiable(effect, pci, s.max_delay), fit_seconds=round(time.time() - t1, 1))
             if effect == "stribeck_friction":
                 entry["vs"] = float(ext.stribeck()[1][j])
             entry["passes_gain"] = bool(g["ci"][0] > 0)
@@ -286,22 +329,25 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _log(s, f"{effect:18s} {name:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {g['gain']:.3g} "
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] rel {g['rel']:.3f} ({time.time() - t1:.0f} s)")
 
-    # 3. nulls for exo-driven candidates that pass so far
-    rot = None
+    # 3. nulls for exo-driven candidates that pass so far: the same term fitted on the exo torque taken
+    #    from the future (at the lag where it correlates most with the residual)
     for entry in results:
         c = LIBRARY[entry["effect"]]
         if "status" in entry or not (c.needs_exo and entry.get("passes_floor") and entry.get("identifiable")):
             continue
-        rot = rot or _rotated(flat)
         j = flat.joints.index(entry["joint"])
-        null = extend(base, rot, [(entry["effect"], j)], max_delay=s.max_delay)
-        train(null, rot, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
-        e_null = sq_errors(null, rot, held).sum(1)
+        k = np.zeros(flat.n, dtype=int)
+        k[j] = _leak_lag(ref, flat, j)
+        adv = _advanced(flat, k)
+        null = extend(base, adv, [(entry["effect"], j)], init=_screen_init(entry["effect"], entry.get("screen", {})),
+                      max_delay=s.max_delay)
+        train(null, adv, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + 1)
+        e_null = sq_errors(null, adv, held).sum(1)
         gn = _gain(e_null, fitted[(entry["effect"], j)][1], s)
-        entry["null_gain"] = dict(gain=gn["gain"], ci=gn["ci"])
+        entry["null_gain"] = dict(gain=gn["gain"], ci=gn["ci"], future_lag_s=float(k[j] * flat.dt))
         entry["passes_null"] = bool(gn["ci"][0] > 0)
-        _log(s, f"null {entry['effect']} {entry['joint']}: candidate beats shifted-exo null by {gn['gain']:.3g} "
-                f"[{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
+        _log(s, f"null {entry['effect']} {entry['joint']}: beats the same term on exo torque {k[j]} samples in the "
+                f"future by {gn['gain']:.3g} [{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
 
     # 4. single-candidate verdicts
     for entry in results:
@@ -325,7 +371,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             if not entry["identifiable"]:
                 why.append("parameter not identified (CI reaches the no-effect value / boundary)")
             if c.needs_exo and entry.get("passes_null") is False:
-                why.append("no better than the same term on time-shifted exo torque")
+                why.append("no better than the same term on future exo torque (assistive torque tracks the human torque)")
             entry["status"] = "rejected"
             entry["reason"] = "; ".join(why)
 

@@ -160,7 +160,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    a circular-block-bootstrap 95% CI (block length from the ACF) above 0 **and** above the noise floor (two
    reference refits differing only in minibatch order);
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
-   circularly shifted by half a trial (assistive torque correlates with the human torque);
+   taken from the future (at the lag ≥ 25 ms where it correlates most with the residual): the future exo torque
+   cannot act now but shares the assistive controller's correlation with the human torque;
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
