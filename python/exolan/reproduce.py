@@ -18,7 +18,7 @@ same arguments skips every finished job (and the training itself resumes from it
 Jobs run in a local process pool (``--workers``) or as Ray tasks (``--ray ADDRESS``); both call the same
 pure function :func:`run_job`, so both give the same numbers.
 
-Scales: ``small`` (~15 min on two cores: 21 users x 28 tasks of 2.5 s, 4 epochs, 2 seeds; part of the main
+Scales: ``small`` (~15 min on two cores: 21 users x 28 tasks of 2 s, 3 epochs, 2 seeds; part of the main
 job), ``medium`` (20 s trials, 100 epochs, 3 seeds: hours), ``paper`` (the default world, 1000 epochs,
 5 seeds). On a machine with CUDA, ``medium`` and ``paper`` train on the GPU (``EXOLAN_DEVICE=cpu|cuda``
 overrides), two runs at a time; evaluation always runs on the CPU in the worker.
@@ -121,8 +121,8 @@ SCALES: dict[str, Scale] = {
                    architectures=("exolan", "mlp-tcn"), lims=(True,), batch_size=1024, rollout_stride=40,
                    taskid_per_trial=50, taskid_epochs=5, real=True, real_epochs=1, real_seeds=(0,)),
     # Fits ~15 min on 2 shared cores: the full method grid on a reduced world and few epochs.
-    "small": Scale("small", users=21, tasks="all", seconds=2.5, epochs=4, seeds=(0, 1), batch_size=1024,
-                   rollout_stride=25, taskid_per_trial=150, taskid_epochs=100, real_epochs=15,
+    "small": Scale("small", users=21, tasks="all", seconds=2.0, epochs=3, seeds=(0, 1), batch_size=1024,
+                   rollout_stride=25, taskid_per_trial=100, taskid_epochs=50, real_epochs=10,
                    real_seeds=(0, 1)),
     "medium": Scale("medium", users=21, tasks="all", seconds=20.0, epochs=100, seeds=(0, 1, 2), batch_size=4096,
                     rollout_stride=10, taskid_per_trial=1000, taskid_epochs=300, real_epochs=200,
