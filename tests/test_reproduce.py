@@ -289,3 +289,31 @@ def test_ray_path_gives_the_local_numbers(tiny_serial, fake_real, tmp_path):
     finally:
         ray.shutdown()
     assert _metrics(tmp_path) == _metrics(out)
+
+
+def test_forward_dynamics_metrics_on_a_model_that_is_exact():
+    """A model whose inverse dynamics produced the torques recovers q̈ exactly; its open-loop rollouts
+    then only carry the integrator's error, which grows with the horizon, and match a plain loop."""
+    scale = R.SCALES["tiny"]
+    tr = fake_world(users=1, tasks=("walk",), T=200)[0]
+    m = FakeModel(3, 0)
+    with torch.no_grad():
+        m.W.copy_(torch.randn(m.W.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.1)
+        m.a.copy_(torch.tensor([0.5, 0.3], dtype=torch.float64))
+        z = m.context(torch.as_tensor(StandInBackend().context_features(tr))[None])[0]
+        tau = m.inverse(*(torch.as_tensor(a) for a in (tr.q, tr.qd, tr.qdd)), z, torch.as_tensor(tr.f_v))
+    tr = dataclasses.replace(tr, tau=tau.numpy())
+    rows = R._fd_metrics(m, [("seen", tr, z)], torch.float64, scale)
+    assert sum(rows[0]["sse_qdd"]) / rows[0]["n_qdd"] < 1e-20
+    h = rows[0]["horizons"]
+    mse = [sum(h[str(k)]["sse_q"]) / h[str(k)]["n"] for k in scale.horizons]
+    assert 0 < mse[0] < mse[1] < mse[2] < 1e-3
+    # the first start, integrated by hand
+    s = int(np.flatnonzero(np.convolve(tr.valid.astype(int), np.ones(21, int), "valid") == 21)[0])
+    q, qd = torch.as_tensor(tr.q[s]), torch.as_tensor(tr.qd[s])
+    for k in range(4):
+        qdd = m.forward_dynamics(q, qd, tau[s + k], z[s + k], torch.as_tensor(tr.f_v[s + k]))
+        qd = qd + tr.dt * qdd
+        q = q + tr.dt * qd
+    assert h["4"]["n"] >= 1
+    assert float(((q.numpy() - tr.q[s + 4]) ** 2).sum()) <= h["4"]["sse_q"][0] + h["4"]["sse_q"][1] + 1e-15
