@@ -87,3 +87,16 @@ def test_pipeline_end_to_end(tmp_path):
     for f in ("reproduce/report.md", "evaluation.json", "exolan.safetensors", "rollouts.json",
               "diagnosis/diagnosis.md", "pipeline.md"):
         assert (tmp_path / f).stat().st_size > 0, f
+
+
+def test_a_timed_out_diagnosis_is_flagged_but_does_not_fail_the_job(monkeypatch, tmp_path):
+    _stub(monkeypatch)
+
+    def slow(*a, **k):
+        raise P.StepTimeout("diagnose (quick settings) did not finish within 1 s")
+
+    monkeypatch.setattr(P, "_run_py", slow)
+    assert P.pipeline(tmp_path, log=lambda *a: None) == 0
+    steps = json.loads((tmp_path / "pipeline.json").read_text())["steps"]
+    assert steps[-1]["status"] == "timed out"
+    assert "timed out" in (tmp_path / "pipeline.md").read_text()

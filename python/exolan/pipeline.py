@@ -46,12 +46,17 @@ def _cli(*args: str, log, timeout: float | None = None) -> subprocess.CompletedP
     return r
 
 
+class StepTimeout(RuntimeError):
+    """A time-bounded step ran out of time: reported as such, not as a failure of the job."""
+
+
 def _run_py(code: str, argv: list[str], log, timeout: float | None, label: str) -> None:
     log(f"[pipeline] $ {label}: python -c {code!r} {' '.join(argv)}")
     try:
         r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
-        raise RuntimeError(f"{label} did not finish within {timeout:.0f} s (stopped)") from None
+        raise StepTimeout(f"{label} did not finish within {timeout:.0f} s (stopped; "
+                          "EXOLAN_DIAGNOSE_TIMEOUT sets the bound)") from None
     tail = (r.stdout + r.stderr).strip().splitlines()[-15:]
     for line in tail:
         log("    " + line)
@@ -66,6 +71,9 @@ def _step(name: str, steps: list, log, fn):
     try:
         out = fn() or {}
         rec.update(status="ok", **out)
+    except StepTimeout as exc:
+        rec.update(status="timed out", error=str(exc))
+        log(f"[pipeline] {name} TIMED OUT: {exc}")
     except Exception as exc:  # noqa: BLE001 - recorded, and the job's exit status says so
         rec.update(status="failed", error=f"{type(exc).__name__}: {exc}")
         log(f"[pipeline] {name} FAILED: {exc}")
@@ -142,7 +150,8 @@ def pipeline(out: str | Path, log=print, scale: str = SCALE) -> int:
             _step("Rust rollouts", steps, log, rust_rollouts)
         _step("diagnose", steps, log, diagnose)
     total = time.perf_counter() - t_all
-    ok = all(s["status"] == "ok" for s in steps)
+    # a bounded step that ran out of time is flagged in the summary but does not fail the job
+    ok = all(s["status"] in ("ok", "timed out") for s in steps)
     _write_summary(out, steps, total, ok)
     log(f"[pipeline] {'done' if ok else 'FINISHED WITH FAILURES'} in {total:.0f} s: {out / 'pipeline.md'}")
     return 0 if ok else 1
