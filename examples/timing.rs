@@ -62,5 +62,27 @@ fn main() {
             m.rollout(&mut ws, &[0.2, 0.5], &[0.0, 0.0], Inputs { tau: &tau, z: ZSeq::Const(&zc), f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)
                 .unwrap();
         });
+        let zs: Vec<f64> = (0..t_len * 16).map(|i| (i as f64 * 0.01).sin()).collect();
+        time("rollout, 200 steps, per-step z (÷200)", 1, || {
+            m.rollout(&mut ws, &[0.2, 0.5], &[0.0, 0.0], Inputs { tau: &tau, z: ZSeq::PerStep(&zs), f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)
+                .unwrap();
+        });
+        // batched: B = 256 rollouts of T = 20 steps, per-step z, on a 1-thread pool
+        let (bsz, th) = (256, 20);
+        let q0 = vec![0.1; bsz * 2];
+        let taub = vec![1.0; bsz * th * 2];
+        let zb: Vec<f64> = (0..bsz * th * 16).map(|i| (i as f64 * 0.01).sin()).collect();
+        let fvb = vec![100.0; bsz * th];
+        let mut wss: Vec<exolan::Workspace> = (0..bsz).map(|_| m.workspace()).collect();
+        let (mut qb, mut qdb) = (vec![0.0; bsz * (th + 1) * 2], vec![0.0; bsz * (th + 1) * 2]);
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            time(&format!("batched 256x20, {threads} thr (÷5120)"), 1, || {
+                pool.install(|| {
+                    m.rollout_batch(&mut wss, &q0, &q0, Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, &mut qb, &mut qdb)
+                        .unwrap()
+                })
+            });
+        }
     }
 }

@@ -63,6 +63,35 @@ fn expect_shape(name: &str, shape: &[usize], want: &[usize]) -> PyResult<()> {
     Ok(())
 }
 
+/// Run `f` on a rayon pool of `threads` threads (cached per count), or on the global pool.
+fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> T + Send) -> PyResult<T> {
+    use std::collections::HashMap;
+    use std::sync::{Arc, OnceLock};
+    static POOLS: OnceLock<Mutex<HashMap<usize, Arc<rayon::ThreadPool>>>> = OnceLock::new();
+    match threads {
+        None | Some(0) => Ok(f()),
+        Some(t) => {
+            let pool = {
+                let mut pools = POOLS.get_or_init(|| Mutex::new(HashMap::new())).lock().unwrap_or_else(|p| p.into_inner());
+                match pools.get(&t) {
+                    Some(p) => p.clone(),
+                    None => {
+                        let p = Arc::new(
+                            rayon::ThreadPoolBuilder::new()
+                                .num_threads(t)
+                                .build()
+                                .map_err(|e| PyValueError::new_err(format!("cannot start {t} threads: {e}")))?,
+                        );
+                        pools.insert(t, p.clone());
+                        p
+                    }
+                }
+            };
+            Ok(pool.install(f))
+        }
+    }
+}
+
 /// Samples per rayon task: small batches stay on the calling thread.
 const CHUNK: usize = 64;
 
@@ -393,7 +422,7 @@ impl Engine {
 
     /// Batched rollouts: q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz), f_v (B, T),
     /// tau_e (B, T, n). Returns flat q and qd, each B·(T+1)·n.
-    #[pyo3(signature = (q0, qd0, tau, dt, z=None, f_v=None, tau_e=None))]
+    #[pyo3(signature = (q0, qd0, tau, dt, z=None, f_v=None, tau_e=None, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn rollout<'py>(
         &self,
@@ -405,6 +434,7 @@ impl Engine {
         z: Option<PyReadonlyArrayDyn<'py, f64>>,
         f_v: Option<PyReadonlyArrayDyn<'py, f64>>,
         tau_e: Option<PyReadonlyArrayDyn<'py, f64>>,
+        threads: Option<usize>,
     ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
         let m = &self.model;
         let (n, dz) = (m.n, m.dz);
@@ -461,7 +491,8 @@ impl Engine {
                 m.rollout(&mut ws, q0, qd0, inp, dt, &mut q, &mut qd)
             } else {
                 let mut wss: Vec<Workspace> = (0..b).map(|_| m.workspace()).collect();
-                m.rollout_batch(&mut wss, q0, qd0, inp, dt, &mut q, &mut qd)
+                with_threads(threads, || m.rollout_batch(&mut wss, q0, qd0, inp, dt, &mut q, &mut qd))
+                    .unwrap_or_else(|e| Err(Error::InputShape(e.to_string())))
             }
         })
         .map_err(to_py)?;
@@ -496,6 +527,65 @@ impl Engine {
             .map_err(to_py)?;
         }
         Ok(PyArray1::from_vec(py, z))
+    }
+
+    /// Native per-call cost of a hot path, timed inside Rust (no Python in the loop): the minimum
+    /// over `batches` batches of `per_batch` calls, in seconds. `op`: "inverse", "forward",
+    /// "rollout_step" (a 200-step rollout / 200, constant z) or "encode_step".
+    #[pyo3(signature = (op, per_batch=200, batches=100))]
+    fn time_hot(&self, py: Python<'_>, op: &str, per_batch: usize, batches: usize) -> PyResult<f64> {
+        use std::hint::black_box;
+        use std::time::Instant;
+        let m = &self.model;
+        let n = m.n;
+        let per_batch = per_batch.max(1);
+        let mut ws = m.workspace();
+        let z: Vec<f64> = (0..m.dz).map(|i| (i as f64 * 0.37).sin() * 0.5).collect();
+        ws.set_z(m, &z).map_err(to_py)?;
+        let q: Vec<f64> = (0..n).map(|i| 0.3 + 0.2 * i as f64).collect();
+        let qd: Vec<f64> = (0..n).map(|i| 1.0 - 0.5 * i as f64).collect();
+        let mut out = vec![0.0; n];
+        let t_len = 200;
+        let tau = vec![1.0; t_len * n];
+        let f_v = vec![200.0; t_len];
+        let (mut qo, mut qdo) = (vec![0.0; (t_len + 1) * n], vec![0.0; (t_len + 1) * n]);
+        let mut st = m.encoder_state();
+        let x = vec![0.5; m.context_dim()];
+        let mut zo = vec![0.0; m.dz];
+        let op = op.to_string();
+        let best = py.detach(|| -> Result<f64, Error> {
+            let mut best = f64::INFINITY;
+            for _ in 0..batches.max(1) {
+                let t = Instant::now();
+                let mut calls = per_batch;
+                match op.as_str() {
+                    "inverse" => {
+                        for _ in 0..per_batch {
+                            m.inverse_dynamics(&mut ws, black_box(&q), black_box(&qd), black_box(&qd), 100.0, None, &mut out)?;
+                        }
+                    }
+                    "forward" => {
+                        for _ in 0..per_batch {
+                            m.forward_dynamics(&mut ws, black_box(&q), black_box(&qd), black_box(&qd), 100.0, None, &mut out)?;
+                        }
+                    }
+                    "rollout_step" => {
+                        let zs = if m.dz > 0 { ZSeq::Const(&z) } else { ZSeq::Keep };
+                        m.rollout(&mut ws, &q, &qd, Inputs { tau: &tau, z: zs, f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)?;
+                        calls = t_len;
+                    }
+                    "encode_step" => {
+                        for _ in 0..per_batch {
+                            m.encode_step(&mut st, black_box(&x), &mut zo)?;
+                        }
+                    }
+                    other => return Err(Error::InputShape(format!("unknown op {other:?}"))),
+                }
+                best = best.min(t.elapsed().as_secs_f64() / calls as f64);
+            }
+            Ok(best)
+        });
+        best.map_err(to_py)
     }
 
     /// The applied exoskeleton torque τ_e(t − d) of a recorded sequence (T, n), with the model's

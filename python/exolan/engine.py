@@ -149,12 +149,14 @@ class Engine:
         c, g, B = (flat[:, n * n + k * n:n * n + (k + 1) * n].reshape(lead + (n,)) for k in range(3))
         return EngineTerms(H, c, g, B)
 
-    def rollout(self, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None):
+    def rollout(self, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None, threads=None):
         """Semi-implicit Euler over T = tau.shape[-2] steps (DESIGN.md section 5).
 
         Unbatched: q0, qd0 (n,), tau (T, n), z (dz,) or (T, dz), f_v (T,), tau_e (T, n) -> q, qd (T+1, n).
         Batched: q0, qd0 (B, n), tau (B, T, n), z (B, dz), (B, T, dz) or (dz,), f_v (B, T) -> (B, T+1, n).
-        Index 0 is the initial state. dt defaults to the model's (metadata `dt`)."""
+        Index 0 is the initial state. dt defaults to the model's (metadata `dt`). A batch is spread over
+        `threads` threads (default: rayon's global pool, RAYON_NUM_THREADS or all cores); the result is
+        bit-identical for every thread count."""
         n, dz = self.n, self.z_dim
         q0 = _f64(q0, "q0")
         batched = q0.ndim == 2
@@ -189,7 +191,7 @@ class Engine:
             fv = np.ascontiguousarray(fv if batched else fv[None])
         te = None if tau_e is None else np.ascontiguousarray(add(_f64(tau_e, "tau_e")))
         q, qd = self._e.rollout(np.ascontiguousarray(q0), np.ascontiguousarray(qd0), np.ascontiguousarray(tau),
-                                float(dt), zz, fv, te)
+                                float(dt), zz, fv, te, threads)
         shape = (B, T + 1, n) if batched else (T + 1, n)
         return q.reshape(shape), qd.reshape(shape)
 
@@ -202,6 +204,11 @@ class Engine:
         if a.ndim != 3:
             raise ValueError(f"bad input shape: x has shape {a.shape}, expected (T, C) or (B, T, C)")
         return self._e.encode(a).reshape(a.shape[0], a.shape[1], self.z_dim)
+
+    def time_hot(self, op: str, per_batch: int = 200, batches: int = 100) -> float:
+        """Native seconds per call of a hot path timed inside Rust ("inverse", "forward", "rollout_step",
+        "encode_step"): the minimum over batches, for benchmarks on a shared machine."""
+        return self._e.time_hot(op, per_batch, batches)
 
     def applied_exo(self, tau_e, dt=None) -> np.ndarray:
         """τ_e(t − d) for a recorded sequence (T, n) with the model's delay (τ_e itself without one)."""
@@ -225,10 +232,10 @@ def _engine(model) -> Engine:
     return eng
 
 
-def fast_rollout(model, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None):
+def fast_rollout(model, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None, threads=None):
     """Rollouts with the Rust engine. `model`: weight-file path (loaded once and cached) or Engine.
     Shapes as `Engine.rollout`: (n,)/(T, n) unbatched or (B, n)/(B, T, n) batched; returns (q, qd)."""
-    return _engine(model).rollout(q0, qd0, tau, dt, z=z, f_v=f_v, tau_e=tau_e)
+    return _engine(model).rollout(q0, qd0, tau, dt, z=z, f_v=f_v, tau_e=tau_e, threads=threads)
 
 
 # -- `exolan rollout MODEL --data DIR` --------------------------------------------------------------
