@@ -190,6 +190,8 @@ def _holds(res: dict, paper_rel: float | None) -> str:
     rel, p = res.get("rel_change"), res.get("p_wilcoxon_users", float("nan"))
     if rel is None or not np.isfinite(rel):
         return "n/a"
+    if abs(rel) < 1e-12:
+        return "no difference"
     same_sign = paper_rel is None or (np.sign(rel) == np.sign(paper_rel)) or paper_rel == 0
     if same_sign and np.isfinite(p) and p < 0.05:
         return "holds"
