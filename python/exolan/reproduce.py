@@ -19,7 +19,7 @@ Jobs run in a local process pool (``--workers``) or as Ray tasks (``--ray ADDRES
 pure function :func:`run_job`, so both give the same numbers.
 
 Scales: ``small`` (~15 min on two cores: 21 users x 28 tasks of 2 s, 3 epochs, 2 seeds; part of the main
-job), ``medium`` (20 s trials, 100 epochs, 3 seeds: hours), ``paper`` (the default world, 1000 epochs,
+job), ``medium`` (6 s trials, 30 epochs, 3 seeds: a few hours on 8-16 cores or a GPU), ``paper`` (the default world, 1000 epochs,
 5 seeds). On a machine with CUDA, ``medium`` and ``paper`` train on the GPU (``EXOLAN_DEVICE=cpu|cuda``
 overrides), two runs at a time; evaluation always runs on the CPU in the worker.
 
@@ -124,8 +124,9 @@ SCALES: dict[str, Scale] = {
     "small": Scale("small", users=21, tasks="all", seconds=2.0, epochs=3, seeds=(0, 1), batch_size=1024,
                    rollout_stride=25, taskid_per_trial=100, taskid_epochs=50, real_epochs=10,
                    real_seeds=(0, 1)),
-    "medium": Scale("medium", users=21, tasks="all", seconds=20.0, epochs=100, seeds=(0, 1, 2), batch_size=4096,
-                    rollout_stride=10, taskid_per_trial=1000, taskid_epochs=300, real_epochs=200,
+    # A few hours on an 8-16 core machine or one GPU (measured cost of `small`, scaled by samples x epochs).
+    "medium": Scale("medium", users=21, tasks="all", seconds=6.0, epochs=30, seeds=(0, 1, 2), batch_size=2048,
+                    rollout_stride=10, taskid_per_trial=500, taskid_epochs=200, real_epochs=100,
                     real_seeds=(0, 1, 2)),
     # The paper's protocol: full default world, 1000 epochs, 5 seeds.
     "paper": Scale("paper"),
