@@ -167,15 +167,31 @@ impl Tensors<'_> {
     }
     /// `prefix.{0..}` Linear layers: discovers the count and hidden widths, checks the chain.
     fn mlp(&mut self, prefix: &str, d_in: usize, d_out: usize) -> Result<Mlp> {
+        // layers = 1 + the largest index named `prefix.{i}.*`; a gap is a missing tensor
+        let dotted = format!("{prefix}.");
         let mut count = 0;
-        while self.has(&format!("{prefix}.{count}.weight")) {
-            count += 1;
-            if count > 64 {
-                return Err(Error::Unsupported(format!("{prefix}: more than 64 layers")));
+        for name in self.st.names() {
+            if let Some(rest) = name.strip_prefix(&dotted) {
+                if let Some((idx, _)) = rest.split_once('.') {
+                    if let Ok(i) = idx.parse::<usize>() {
+                        if i >= 64 {
+                            return Err(Error::Unsupported(format!("{prefix}: more than 64 layers")));
+                        }
+                        count = count.max(i + 1);
+                    }
+                }
             }
         }
         if count == 0 {
             return Err(Error::MissingTensor(format!("{prefix}.0.weight")));
+        }
+        for i in 0..count {
+            for part in ["weight", "bias"] {
+                let name = format!("{prefix}.{i}.{part}");
+                if !self.has(&name) {
+                    return Err(Error::MissingTensor(name));
+                }
+            }
         }
         let mut layers = Vec::with_capacity(count);
         let mut inp = d_in;
