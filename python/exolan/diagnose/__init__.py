@@ -28,7 +28,7 @@ from .procedure import Settings, load_trials, run
 
 __all__ = ["diagnose", "cli_diagnose", "Settings", "LIBRARY", "CONFUSABLE"]
 
-QUICK = dict(steps_base=600, steps_refit=250, hidden=32, n_boot=400, batch=2048)
+QUICK = dict(steps_base=1500, steps_refit=300, hidden=32, n_boot=400, batch=2048)
 
 
 def _pooled_base(model, trials):

@@ -47,10 +47,10 @@ from .fit import DTYPE, Flat, _base_of, _forward, extend, make_base, predict, pr
 
 @dataclass
 class Settings:
-    steps_base: int = 1500      # base model fit (minibatch Adam steps)
+    steps_base: int = 3000      # base model fit (minibatch Adam steps)
     steps_refit: int = 400      # every warm-start refit (reference, candidates, nulls, extended)
-    lr_base: float = 3e-3
-    lr_refit: float = 1e-3
+    lr_base: float = 2e-2
+    lr_refit: float = 3e-3
     lr_ext: float = 3e-2
     batch: int = 4096
     hidden: int = 64
