@@ -13,7 +13,15 @@ from torch.func import grad, hessian, jacfwd, jacrev, vmap
 from exolan import delan
 from exolan.models import build_model
 
-torch.set_default_dtype(torch.float64)
+
+
+@pytest.fixture(autouse=True)
+def float64_default():
+    """float64 inside this module's tests only (a module-level switch would leak into other test files)."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
 
 
 def _oracle_net(layers, x):
