@@ -103,7 +103,7 @@ def torque_stats(runs: list[dict], groups: dict[str, str], splits) -> dict:
                 tasks.setdefault(t, []).append(_mse(rr))
             for u, rr in _by(rows, lambda x: x["subject"]).items():
                 users.setdefault(u, []).append(_mse(rr))
-            for k, rr in _by(rows, lambda x: f"{x['subject']}/{x['task']}/{x['side']}").items():
+            for k, rr in _by(rows, lambda x: f"{x['subject']}/{x.get('name', x['task'])}/{x['side']}").items():
                 if sum(x["n"] for x in rr):
                     trials.setdefault(k, []).append(_mse(rr))
         out[split] = {
@@ -769,7 +769,7 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
             L.append(f"| {m['label']} | {_pm(m['seen']['mse'])} | {_pm(m['unseen_task']['mse'])} | "
                      f"{_pm(m['unseen_user']['mse'])} |")
         L += ["", "DeLaN-based vs black-box. Two of the splits hold one person only, so here the paired "
-              "Wilcoxon test runs over held-out *trials* (subject, task, leg; per-trial MSE averaged over "
+              "Wilcoxon test runs over held-out *trials* (subject, recording, leg; per-trial MSE averaged over "
               "seeds) - trials of one person are not independent, so read p as descriptive. The 'users "
               "better' column counts trials here.", ""]
         L += _claims_table(S["real_claims"])

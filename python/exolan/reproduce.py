@@ -389,7 +389,7 @@ def _run_job(spec_d: dict, ctx_d: dict) -> dict:
             pred = _inverse(model, tr, z, dtype)
             err = (pred - tr.tau) ** 2
             ok = tr.valid & np.all(np.isfinite(tr.tau), axis=1)
-            rows.append({"subject": tr.subject, "task": tr.task, "side": tr.side, "split": split,
+            rows.append({"subject": tr.subject, "task": tr.task, "name": tr.name, "side": tr.side, "split": split,
                          "n": int(ok.sum()), "sse": np.nansum(np.where(ok[:, None], err, 0.0), axis=0).tolist(),
                          "mass": float(tr.mass)})
     result["torque_rows"] = rows
