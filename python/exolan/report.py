@@ -569,7 +569,7 @@ def _figures(figdir: Path, scale: Scale, specs, results, summary) -> dict[str, s
         ax.set_xticks(x, [LABELS[a].replace(" (DeLaN-TCN)", "") + " + LIM" for a in archs], rotation=30, ha="right")
         ax.set_ylabel("torque MSE [N² m²]"); ax.set_yscale("log")
         ax.set_title("Real recordings (shared/real): held-out time, tasks and people")
-        ax.legend()
+        ax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5))  # outside: no bar hidden
         fig.tight_layout()
         figs["real_mse_bars"] = _save(fig, figdir / "real_mse_bars.png", plt)
     return figs
