@@ -115,11 +115,14 @@ impl Workspace {
 
     fn compute_z(&mut self, m: &Model, z: &[f64]) {
         self.z.copy_from_slice(z);
-        m.net_l.z_bias(m.dphi, z, &mut self.zb_l);
-        m.net_v.z_bias(m.dphi, z, &mut self.zb_v);
-        if let Some(lim) = &m.net_lim {
-            lim.z_bias(m.dphi, z, &mut self.zb_lim);
+        #[cfg(target_arch = "x86_64")]
+        if m.simd == crate::model::Simd::Avx2Fma {
+            // SAFETY: the level is only set when the CPU reports AVX2 and FMA (checked at load).
+            unsafe { z_bias_fma(m, self, z) };
+            self.z_ready = true;
+            return;
         }
+        z_bias_all::<false>(m, self, z);
         self.z_ready = true;
     }
 
@@ -167,6 +170,21 @@ impl Workspace {
     pub fn potential(&self) -> f64 {
         self.v
     }
+}
+
+#[inline(always)]
+fn z_bias_all<const FMA: bool>(m: &Model, ws: &mut Workspace, z: &[f64]) {
+    m.net_l.z_bias_fast::<FMA>(z, &mut ws.zb_l);
+    m.net_v.z_bias_fast::<FMA>(z, &mut ws.zb_v);
+    if let Some(lim) = &m.net_lim {
+        lim.z_bias_fast::<FMA>(z, &mut ws.zb_lim);
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn z_bias_fma(m: &Model, ws: &mut Workspace, z: &[f64]) {
+    z_bias_all::<true>(m, ws, z)
 }
 
 #[inline(always)]

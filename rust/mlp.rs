@@ -46,6 +46,8 @@ impl Dense {
 #[derive(Debug, Clone)]
 pub struct Mlp {
     pub layers: Vec<Dense>,
+    /// The first layer's z columns with its bias (`W0[:, split..]`, `b0`), for `z_bias`.
+    pub(crate) z_part: Option<Dense>,
 }
 
 impl Mlp {
@@ -59,6 +61,29 @@ impl Mlp {
     pub fn buffers(&self, nt: usize) -> Vec<Vec<f64>> {
         self.layers.iter().map(|l| vec![0.0; nt * l.out]).collect()
     }
+    /// Split off the first layer's z columns (inputs `split..`) as their own dense map.
+    pub(crate) fn with_z_part(mut self, split: usize) -> Mlp {
+        let l0 = &self.layers[0];
+        let dz = l0.inp - split;
+        if dz > 0 {
+            let mut rows = vec![0.0; l0.out * dz];
+            for i in 0..l0.out {
+                rows[i * dz..(i + 1) * dz].copy_from_slice(&l0.rows[i * l0.inp + split..(i + 1) * l0.inp]);
+            }
+            self.z_part = Some(Dense::from_rows(&rows, &l0.b, l0.out, dz));
+        }
+        self
+    }
+
+    /// `b0 + W0[:, split..] z` with the SIMD kernel (bits may differ from `z_bias` in the last place).
+    #[inline(always)]
+    pub(crate) fn z_bias_fast<const FMA: bool>(&self, z: &[f64], zb: &mut [f64]) {
+        match &self.z_part {
+            Some(d) => dense::<FMA, false>(d, 1, z, zb),
+            None => zb.copy_from_slice(&self.layers[0].b),
+        }
+    }
+
     /// First layer's constant part for a fixed context: `b0 + W0[:, split..] z`.
     /// Computed once per z, not per step.
     pub fn z_bias(&self, split: usize, z: &[f64], zb: &mut [f64]) {

@@ -209,7 +209,7 @@ impl Tensors<'_> {
             layers.push(self.dense(&format!("{prefix}.{i}"), out, inp)?);
             inp = out;
         }
-        Ok(Mlp { layers })
+        Ok(Mlp { layers, z_part: None })
     }
 }
 
@@ -402,9 +402,9 @@ impl Model {
 
         let dz = z_dim;
         let d_in = dphi + dz;
-        let net_l = ts.mlp("delan.L", d_in, n * (n + 1) / 2)?;
-        let net_v = ts.mlp("delan.V", d_in, 1)?;
-        let net_lim = if lim { Some(ts.mlp("lim", d_in, n)?) } else { None };
+        let net_l = ts.mlp("delan.L", d_in, n * (n + 1) / 2)?.with_z_part(dphi);
+        let net_v = ts.mlp("delan.V", d_in, 1)?.with_z_part(dphi);
+        let net_lim = if lim { Some(ts.mlp("lim", d_in, n)?.with_z_part(dphi)) } else { None };
         for (key, net) in [("hidden", Some(&net_l)), ("lim_hidden", net_lim.as_ref())] {
             if let (Some(net), true) = (net, raw.contains_key(key)) {
                 let h = m.usize(key)?;
