@@ -63,5 +63,7 @@ def test_delan_recovers_two_link_pendulum(tmp_path):
         Hm, cm, gm = (x.double().numpy() for x in model.terms(torch.as_tensor(q, dtype=torch.float32),
                                                               torch.as_tensor(qd, dtype=torch.float32)))
     rel = lambda a, b: np.linalg.norm(a - b) / np.linalg.norm(b)
-    assert rel(Hm, H) < 0.1 and rel(gm, g) < 0.05 and rel(cm, c) < 0.2, (rel(Hm, H), rel(gm, g), rel(cm, c))
+    print(f"torque R² {res['torque']['r2']:.5f}; relative error H {rel(Hm, H):.3g}, g {rel(gm, g):.3g}, "
+          f"c {rel(cm, c):.3g}; q MSE after 20 steps {res['forward']['q']['20']['mse']:.3g} rad²")
+    assert rel(Hm, H) < 0.05 and rel(gm, g) < 0.03 and rel(cm, c) < 0.15, (rel(Hm, H), rel(gm, g), rel(cm, c))
     assert res["forward"]["q"]["20"]["mse"] < 1e-3
