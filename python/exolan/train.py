@@ -15,6 +15,10 @@ Run directory:
     run.json        status ("running" | "done"), data, timings
     physics.json    DeLaN-based models: H positive definite, cond(H) range, energy drift of free rollouts
 
+The LSTM's memory is unbounded: a chunk that starts at its trial's start begins from zero state there, exactly
+as in evaluation; a chunk inside a trial begins from zero state `warmup` samples before its loss steps (the
+paper's history of 63 samples), a truncation of the whole-trial state used in evaluation.
+
 Determinism: parameters are initialised after torch.manual_seed(seed); each epoch draws its batch order and
 rollout starts from a generator seeded by (seed, epoch), so an interrupted run resumed from its last
 checkpoint repeats exactly what the uninterrupted run does.
