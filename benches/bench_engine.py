@@ -100,14 +100,14 @@ def main(argv=None) -> dict:
     tau = rng.normal(size=(B, H, 2)) * 5
     zs = rng.normal(size=(B, H, 16)) * 0.5
     fvs = rng.uniform(0, 600, size=(B, H))
-    rust_b = best_of(lambda: eng.rollout(q0, qd0, tau, 0.005, z=zs, f_v=fvs, threads=a.threads), max(3, R // 4), 1)
+    rust_b = best_of(lambda: eng.rollout(q0, qd0, tau, 0.005, z=zs, f_v=fvs, threads=a.threads), R, 1)
     args64 = [T(x) for x in (q0, qd0, tau)] + [0.005, T(zs), T(fvs)]
     with torch.no_grad():
-        torch_b64 = best_of(lambda: torch_rollout(model, *args64), max(3, R // 4), 1)
+        torch_b64 = best_of(lambda: torch_rollout(model, *args64), R, 1)
         m32 = build_model("exolan", lim=True, context_channels=CHANNELS, joint_names=("hip", "knee")).eval()
         m32.load_state_dict({k: v.float() for k, v in model.state_dict().items()})
         args32 = [T(x).float() for x in (q0, qd0, tau)] + [0.005, T(zs).float(), T(fvs).float()]
-        torch_b32 = best_of(lambda: torch_rollout(m32, *args32), max(3, R // 4), 1)
+        torch_b32 = best_of(lambda: torch_rollout(m32, *args32), R, 1)
     steps = B * H
     res["batched"] = dict(rust_s=rust_b, torch64_s=torch_b64, torch32_s=torch_b32,
                           rust_steps_per_s=steps / rust_b, torch64_steps_per_s=steps / torch_b64,
