@@ -79,11 +79,21 @@ def _save_ext(out: Path, res: dict) -> None:
         from safetensors.numpy import save_file
     except ImportError:
         return
-    t = res["ext_model"].ext_tensors()
+    ext = res["ext_model"]
+    t = ext.ext_tensors()
     if t:
         meta = {"format": "exolan-ext", "joint_names": str(list(res["flat"].joints)),
-                "coulomb_eps": str(res["ext_model"].coulomb_eps)}
+                "coulomb_eps": str(ext.coulomb_eps)}
         save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(out / "ext.safetensors"), metadata=meta)
+    # the whole extended model in the engine's weight format, at the mean context of the trials
+    from .fit import SlowContextDeLaN, export_extended
+    if isinstance(ext.base, SlowContextDeLaN):
+        try:
+            export_extended(ext, out / "extended.safetensors", ext.base.codes.weight.detach().mean(0),
+                            joint_names=res["flat"].joints, dt=res["flat"].dt,
+                            meta={"train_note": "exolan diagnose: slow-context base at the mean trial context"})
+        except Exception as exc:  # the report stands without the export; say why
+            (out / "extended_export_error.txt").write_text(repr(exc))
 
 
 def cli_diagnose(args) -> int:
