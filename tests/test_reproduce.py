@@ -243,7 +243,7 @@ def test_rerun_skips_finished_runs_and_gives_identical_numbers(tiny_serial, fake
     out, _ = tiny_serial
     before = _metrics(out)
     lines = []
-    R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append)
+    R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append, write_report=False)
     assert any("0 to run" in l for l in lines), lines
     assert _metrics(out) == before
 
@@ -255,7 +255,7 @@ def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, fake_real, tmp
     victim = next((tmp_path / "s" / "runs").rglob("DONE"))
     victim.unlink()  # as if killed before this run finished
     lines = []
-    R.reproduce("tiny", tmp_path / "s", workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append)
+    R.reproduce("tiny", tmp_path / "s", workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append, write_report=False)
     assert any("1 to run" in l for l in lines), lines
     a, b = _metrics(out), _metrics(tmp_path / "s")
     assert a == b
@@ -263,7 +263,8 @@ def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, fake_real, tmp
 
 def test_process_pool_gives_the_serial_numbers(tiny_serial, fake_real, tmp_path):
     out, _ = tiny_serial
-    R.reproduce("tiny", tmp_path, workers=2, backend=STANDIN, real_dir=fake_real, log=lambda *a: None)
+    R.reproduce("tiny", tmp_path, workers=2, backend=STANDIN, real_dir=fake_real, log=lambda *a: None,
+                write_report=False)
     assert _metrics(tmp_path) == _metrics(out)
 
 
@@ -285,7 +286,8 @@ def test_ray_path_gives_the_local_numbers(tiny_serial, fake_real, tmp_path):
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
              runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([str(HERE)] + sys.path)}})
     try:
-        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=fake_real, ray_address="auto", log=lambda *a: None)
+        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=fake_real, ray_address="auto", log=lambda *a: None,
+                    write_report=False)
     finally:
         ray.shutdown()
     assert _metrics(tmp_path) == _metrics(out)

@@ -796,8 +796,9 @@ def ensure_world(out: Path, scale: Scale, backend) -> Path:
 
 def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers: int | None = None,
               ray_address: str | None = None, real_dir: str | None = "auto", backend: str | None = None,
-              device: str | None = None, log=print) -> dict:
-    """Run (or resume) the sweep and write the report; returns the results dictionary."""
+              device: str | None = None, log=print, write_report: bool = True) -> dict:
+    """Run (or resume) the sweep and write the report; returns the results dictionary
+    (without the report, `write_report=False`: the runs' results by run id)."""
     from . import report as rep
     scale = SCALES[scale_name]
     out = Path(out).resolve()
@@ -835,6 +836,8 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
             "executor": f"ray {ray_address}" if ray_address else "local process pool",
             "seconds": {"world": t_world, "runs": t_runs}, "task_groups": ctx.groups,
             "n_runs": len(specs), "failed_runs": missing}
+    if not write_report:
+        return results
     summary = rep.build(out, scale, specs, results, meta, log=log)
     meta["seconds"]["total"] = time.perf_counter() - t0
     log(f"[reproduce] done in {meta['seconds']['total']:.0f}s: {out / 'report.md'}")
