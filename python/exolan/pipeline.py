@@ -109,7 +109,18 @@ def pipeline(out: str | Path, log=print, scale: str = SCALE) -> int:
     def evaluate():
         f = out / "evaluation.json"
         _cli("evaluate", str(ctx["run"]), "--data", str(world), "--out", str(f), log=log)
-        return {"evaluation": str(f)}
+        res = {"evaluation": str(f)}
+        try:  # headline figures for the summary; the file holds the rest
+            ev = json.loads(f.read_text())
+            for split in ("seen", "unseen"):
+                t = ev[split]["torque"]
+                res[f"{split} torque MSE [N²m²] (R²)"] = f"{t['mse']:.4g} ({t['r2']:.2f})"
+            ph = ev.get("physics", {})
+            if "positive_definite" in ph:
+                res["H positive definite"] = f"{ph['positive_definite']}, cond {ph['cond_min']:.3g}-{ph['cond_max']:.3g}"
+        except (KeyError, TypeError, ValueError):
+            pass
+        return res
 
     def export():
         f = out / "exolan.safetensors"
