@@ -186,7 +186,7 @@ fn main() {
     let moments = trial_dir.join("Joint_Moments_Filt.csv");
     let subjects = trial_dir.parent().and_then(|p| p.parent()).map(|p| p.join("subjects.csv"));
     let subject = trial_dir.parent().and_then(|p| p.file_name()).map(|s| s.to_string_lossy().to_string());
-    if let (Ok(m), Some(Ok(sub)), Some(subject)) = (read_csv(&moments), subjects.map(|p| std::fs::read_to_string(p)), subject) {
+    if let (Ok(m), Some(Ok(sub)), Some(subject)) = (read_csv(&moments), subjects.map(std::fs::read_to_string), subject) {
         let mass = sub
             .lines()
             .skip(1)

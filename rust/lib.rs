@@ -4,6 +4,10 @@
 //! dynamics with hand-derived derivatives, roll out with semi-implicit Euler, stream the
 //! context encoder. The Python binding lives in [`python`] behind the `python` feature.
 
+// Index loops mirror the physics' index notation (H_ij q̈_j), and `!(x > 0.0)` is deliberate:
+// it is true for NaN, which every such guard must reject.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+
 /// Version of the crate, compared by `exolan doctor` against the Python package's version.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
 

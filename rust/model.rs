@@ -129,7 +129,7 @@ struct Tensors<'a> {
 
 impl Tensors<'_> {
     fn has(&self, name: &str) -> bool {
-        self.st.names().iter().any(|n| *n == name)
+        self.st.names().contains(&name)
     }
     fn shape_of(&self, name: &str) -> Result<Vec<usize>> {
         let t = self.st.tensor(name).map_err(|_| Error::MissingTensor(name.to_string()))?;

@@ -92,6 +92,8 @@ fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> T + Send) -
     }
 }
 
+type ArrayPair<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
+
 /// Samples per rayon task: small batches stay on the calling thread.
 const CHUNK: usize = 64;
 
@@ -435,7 +437,7 @@ impl Engine {
         f_v: Option<PyReadonlyArrayDyn<'py, f64>>,
         tau_e: Option<PyReadonlyArrayDyn<'py, f64>>,
         threads: Option<usize>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    ) -> PyResult<ArrayPair<'py>> {
         let m = &self.model;
         let (n, dz) = (m.n, m.dz);
         let (s, q0) = view("q0", &q0)?;
