@@ -6,11 +6,13 @@
 3. evaluate the pipeline's model (ExoLaN + LIM with w_fd and w_ms, seed 0) with ``exolan evaluate``;
 4. export it to the Rust engine's weight file with ``exolan export``;
 5. open-loop rollouts with the Rust engine (``exolan rollout``) and a torch/Rust parity and speed check;
-6. diagnose the world with that model (the diagnosis API with its short-fit settings, time-bounded);
+6. diagnose the held-out users' recordings of the training tasks with that model (the diagnosis API with its
+   short-fit settings, bounded by EXOLAN_DIAGNOSE_TIMEOUT, default 600 s);
 7. write ``DIR/pipeline.md`` / ``pipeline.json``: every step's status, wall time and outputs.
 
 The training happens once, inside step 2; steps 3-6 reuse its run directory instead of training again,
-which keeps the whole job within ~25 minutes on two cores. Steps 3-6 go through the documented command
+which keeps the job small: measured on two cores shared with four other jobs (load ~10), the whole run took
+28 min wall (reproduce 16 min) for ~10 CPU-minutes of work. Steps 3-6 go through the documented command
 lines of the other parts (each in its own process), so a failure in one step is reported and the
 following steps still run. Re-running the job resumes: finished training runs are never repeated.
 """
