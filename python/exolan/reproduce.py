@@ -820,7 +820,10 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
     if workers is None:
         # one worker per core on CPU; on a GPU a few workers share the device
         workers = min(cores, 4) if device == "cpu" else 2
-    threads = max(1, cores // max(workers, 1)) if device == "cpu" else 1
+    # One torch thread per job whatever the executor: float reductions depend on the thread count, and the
+    # same sweep must give the same numbers serially, in a process pool and on Ray (EXOLAN_THREADS overrides;
+    # more workers, not more threads, is how the sweep uses more cores).
+    threads = int(os.environ.get("EXOLAN_THREADS", 1))
     ctx = JobContext(out=str(out), data_dir=str(data_dir), real_dir=real_dir, scale=scale.name,
                      backend=backend or os.environ.get("EXOLAN_REPRODUCE_BACKEND"), threads=threads,
                      device=device, plot_seed=scale.seeds[0], groups=be.task_groups())
