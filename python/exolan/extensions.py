@@ -43,6 +43,14 @@ def _inv_softplus(y: float) -> float:
     return float(y + math.log(-math.expm1(-y)))
 
 
+def _stiffness(compliance: np.ndarray) -> np.ndarray:
+    """k = 1/compliance, +inf where the compliance is 0 (no strap term on that joint)."""
+    c = np.asarray(compliance, dtype=np.float64)
+    out = np.full_like(c, np.inf)
+    np.divide(1.0, c, out=out, where=c > 0)
+    return out
+
+
 def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
     """(N, max_lag+1) flat indices of the sample k steps earlier in the same trial (clamped at its start)."""
     out = []
@@ -182,8 +190,7 @@ class ExtendedModel(nn.Module):
                 "encoder_offset": self.encoder_offset().cpu().numpy().copy(),
                 "torque_bias": self.torque_bias().cpu().numpy().copy(),
                 "torque_gain": (1.0 / (1.0 - a)).cpu().numpy().copy(),
-                "strap_compliance": np.where(c.cpu().numpy() > 0, 1.0 / np.maximum(c.cpu().numpy(), 1e-300),
-                                             np.inf),
+                "strap_compliance": _stiffness(c.cpu().numpy()),
             }
 
     def estimate(self, effect: str, joint: int) -> float:
