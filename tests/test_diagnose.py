@@ -1,9 +1,10 @@
 """Diagnosis: statistics, a layout-2 system with and without planted friction, and the hidden-effect worlds.
 
 The hidden-effect tests read effects.json only to *check* the report, never to steer the diagnosis. Default
-run: the statistics, the layout-2 linear drive (viscous friction / clean) and one small clean exoskeleton
-world (random seed: nothing may be accepted). Every hidden-effect world is `@pytest.mark.slow` (each takes
-several minutes of fitting on two cores: `pytest -m slow tests/test_diagnose.py`).
+run: the statistics and the layout-2 linear drive (viscous friction with random magnitude and seed / clean),
+both through the full diagnosis (screen, joint refits, decision rule, report). The exoskeleton worlds (one
+small clean world and every hidden-effect world) are `@pytest.mark.slow`: each takes several minutes of
+fitting on two shared cores (`pytest -m slow tests/test_diagnose.py`).
 """
 import json
 import os
@@ -141,8 +142,10 @@ def _check_world(tmp_path, case, users=2, tasks="walk,squat,calisthenics", secon
     return rep
 
 
+@pytest.mark.slow
 def test_clean_small_world_finds_nothing(tmp_path):
-    """Default run: a small clean world (random seed) must give "nothing found" (no accepted finding)."""
+    """A small clean world (random seed) must give "nothing found" (no accepted finding). ~3-5 min on two
+    shared cores, so it runs with -m slow to keep the project's default test run lean."""
     _check_world(tmp_path, "clean", users=2, tasks="walk,squat", seconds=12)
 
 
