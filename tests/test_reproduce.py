@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from exolan import reproduce as R
+from exolan.data import Trial
 
 HERE = Path(__file__).resolve().parent
 STANDIN = "test_reproduce:StandInBackend"
@@ -26,24 +27,8 @@ STANDIN = "test_reproduce:StandInBackend"
 # Stand-in backend: same contracts as exolan.data / exolan.models, no learning beyond least squares
 # ------------------------------------------------------------------------------------------------------
 
-@dataclasses.dataclass
-class FakeTrial:
-    subject: str
-    task: str
-    name: str
-    side: str
-    mass: float
-    dt: float
-    joints: tuple
-    joint_types: tuple
-    q: np.ndarray
-    qd: np.ndarray
-    qdd: np.ndarray
-    tau: np.ndarray
-    tau_e: np.ndarray
-    f_v: np.ndarray
-    cop: np.ndarray
-    valid: np.ndarray
+# the stand-in backend builds real Trial records (the data contract), filled by least-squares stand-ins
+FakeTrial = Trial
 
 
 TRAIN_TASKS = ("walk", "stand", "calisthenics", "push_pull", "jump_in_place", "turn", "cut")
