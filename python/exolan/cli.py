@@ -109,8 +109,12 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("diagnose", help="find what the model's physics gets wrong, extend it, measure the gain")
     p.add_argument("data")
-    p.add_argument("--model", default=None)
+    p.add_argument("--model", default=None, help="a trained DeLaN-based run (default: fit a slow-context base here)")
     p.add_argument("--out", required=True)
+    p.add_argument("--quick", action="store_true", help="short fits and fewer bootstrap draws (minutes, not tens)")
+    p.add_argument("--effects", default=None, help="comma-separated candidate effects to test (default: all)")
+    p.add_argument("--joints", default=None, help="comma-separated joint names to test (default: all)")
+    p.add_argument("--seed", type=int, default=None)
 
     p = sub.add_parser("pipeline", help="the main job: simulate, train, evaluate, export, rollout, diagnose, report")
     p.add_argument("--out", default="out/main")

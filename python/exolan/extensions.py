@@ -90,14 +90,18 @@ class ExtendedModel(nn.Module):
     `effects`: iterable of (effect, joint index) pairs; an effect may appear on several joints (damping on
     several joints gives a full PSD matrix over those joints). `dt` is the sample time (delay in samples),
     `max_delay` (s) bounds the delay (the lag table must reach max_delay/dt + 1 samples).
+    `coupled_damping=False` keeps D diagonal: each joint's own friction, as the diagnosis tests it.
     The base model's parameters stay trainable: `ext_parameters()` and `base_parameters()` separate the
     groups so that a joint refit can use a larger step for the few physical scalars.
     """
 
     def __init__(self, base: nn.Module, n: int, effects: Iterable[tuple[str, int]] = (), dt: float = 0.005,
-                 max_delay: float = 0.1, coulomb_eps: float = COULOMB_EPS, init: dict | None = None):
+                 max_delay: float = 0.1, coulomb_eps: float = COULOMB_EPS, init: dict | None = None,
+                 coupled_damping: bool = True):
         super().__init__()
         self.base = base
+        # False: D stays diagonal (independent joint friction); True: a full PSD D over the damped joints
+        self.coupled_damping = bool(coupled_damping)
         self.n = int(n)
         self.dt = float(dt)
         self.max_delay = float(max_delay)
@@ -146,7 +150,7 @@ class ExtendedModel(nn.Module):
     def damping_matrix(self) -> torch.Tensor:
         """D = L_D L_Dᵀ restricted to the damped joints: PSD by construction."""
         m = self.mask_viscous_damping
-        Lm = torch.tril(self.damping_off, -1) * (m[:, None] * m[None, :])
+        Lm = torch.tril(self.damping_off, -1) * (m[:, None] * m[None, :]) * float(self.coupled_damping)
         Lm = Lm + torch.diag(F.softplus(self.damping_diag) * m)
         return Lm @ Lm.T
 

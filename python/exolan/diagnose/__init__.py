@@ -97,7 +97,18 @@ def _save_ext(out: Path, res: dict) -> None:
 
 
 def cli_diagnose(args) -> int:
-    rep = diagnose(args.data, model=args.model, out=args.out)
+    settings = {}
+    if getattr(args, "effects", None):
+        eff = tuple(e.strip() for e in args.effects.split(",") if e.strip())
+        unknown = [e for e in eff if e not in LIBRARY]
+        if unknown:
+            raise SystemExit(f"exolan diagnose: unknown effect(s) {', '.join(unknown)}; known: {', '.join(LIBRARY)}")
+        settings["effects"] = tuple(e for e in eff if e in Settings().effects)
+    if getattr(args, "joints", None):
+        settings["joints"] = tuple(j.strip() for j in args.joints.split(",") if j.strip())
+    if getattr(args, "seed", None) is not None:
+        settings["seed"] = args.seed
+    rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:
         for f in found:

@@ -7,6 +7,15 @@ recording, e.g. one user's leg in one task): it carries body size, mass and the 
 cannot carry q̇ within a step. A given run (`--model`) is used the same way: its encoder's z is pooled
 (averaged) over each trial and frozen.
 
+Why the other leg's insole force: the hip rides on the pelvis, whose vertical acceleration is set by the
+ground reaction of *both* feet (Newton on the whole body: M a_p = f_v,left + f_v,right − M g). In the hip
+frame that acceleration is a change of effective gravity on the leg (d'Alembert) — a force the leg's own
+insole does not measure. Unmodelled, it leaves a hip residual that follows the gait cycle and that a
+damping, friction or exo-gain term soaks up, worst in jumps and calisthenics. Where a trial's partner
+(same subject and recording, other side) exists, the base therefore also learns B_o(q, z) f_v,other, a
+second insole mapping of the other leg's force. It is part of the diagnosis base only: the engine's weight
+format has one insole input, so an exported extended model leaves it out (it says so in its metadata).
+
 Why held-out *time*: every trial is cut into contiguous segments; one segment in four (rotating phase per
 trial) is held out. The model is tested where it was trained (same user, same task, same loads) but on
 samples it never fitted, so a gain measures the planted physics, not extrapolation to unseen loads.
@@ -40,6 +49,7 @@ class Flat:
     tau_e_d: torch.Tensor
     tau_e_dd: torch.Tensor
     f_v: torch.Tensor
+    f_o: torch.Tensor         # (N,) the other leg's insole force at the same instant (0 without a partner)
     mass: torch.Tensor
     valid: torch.Tensor
     trial: torch.Tensor       # (N,) trial index
@@ -53,7 +63,12 @@ class Flat:
     trial_meta: list[dict]    # subject, task, name, side per trial
     has_exo: bool
     has_insole: bool
+    has_partner: bool = False # every trial has its other-side recording (layout 1, both legs)
     tau_scale: np.ndarray = field(default_factory=lambda: np.ones(1))   # per-joint std of τ/m (train)
+
+    def forces(self, idx) -> torch.Tensor:
+        """The insole input of the models at rows idx: f_v (B,), or [f_v, f_v,other] (B, 2) with a partner."""
+        return torch.stack([self.f_v[idx], self.f_o[idx]], -1) if self.has_partner else self.f_v[idx]
 
     @property
     def n(self) -> int:
@@ -128,15 +143,29 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
         cols["trial"].append(np.full(T, i)); cols["segment"].append(seg + seg_base); cols["held"].append(held)
         seg_base += int(seg.max()) + 1
         meta.append(dict(subject=str(t.subject), task=str(t.task), name=str(t.name), side=str(getattr(t, "side", ""))))
+    # the other leg of the same recording (layout 1 stores both sides of a trial with the same name)
+    side_of = {(str(t.subject), str(t.name), str(getattr(t, "side", ""))): i for i, t in enumerate(trials)}
+    cols["f_o"] = []
+    partners = 0
+    for i, t in enumerate(trials):
+        side = str(getattr(t, "side", ""))
+        other = {"l": "r", "r": "l"}.get(side)
+        o = side_of.get((str(t.subject), str(t.name), other)) if other else None
+        if o is not None and lengths[o] == lengths[i] and getattr(trials[o], "f_v", None) is not None:
+            cols["f_o"].append(np.nan_to_num(np.asarray(trials[o].f_v, dtype=np.float64)))
+            partners += 1
+        else:
+            cols["f_o"].append(np.zeros(lengths[i]))
     cat = {k: np.concatenate(v, axis=0) for k, v in cols.items()}
     f = lambda k: torch.as_tensor(np.nan_to_num(cat[k]), dtype=DTYPE)
     flat = Flat(q=f("q"), qd=f("qd"), qdd=f("qdd"), tau=f("tau"), tau_e=f("tau_e"), tau_e_d=f("tau_e_d"),
-                tau_e_dd=f("tau_e_dd"), f_v=f("f_v"), mass=f("mass"),
+                tau_e_dd=f("tau_e_dd"), f_v=f("f_v"), f_o=f("f_o"), mass=f("mass"),
                 valid=torch.as_tensor(cat["valid"]), trial=torch.as_tensor(cat["trial"]),
                 segment=torch.as_tensor(cat["segment"]), held=torch.as_tensor(cat["held"]),
                 lag=torch.as_tensor(lag_table(lengths, K)), lengths=lengths, joints=joints, joint_types=jtypes,
                 dt=dt, trial_meta=meta, has_exo=bool(np.abs(cat["tau_e"]).max() > 0),
-                has_insole=bool(np.abs(cat["f_v"]).max() > 0))
+                has_insole=bool(np.abs(cat["f_v"]).max() > 0),
+                has_partner=bool(partners == len(trials) and np.abs(cat["f_o"]).max() > 0))
     tr = flat.index("train")
     s = (flat.tau[tr] / flat.mass[tr, None]).std(0).numpy()
     flat.tau_scale = np.where(s > 1e-9, s, 1.0)
@@ -151,10 +180,12 @@ class SlowContextDeLaN(nn.Module):
     """
 
     def __init__(self, joint_types, n_trials: int, z_dim: int = 4, hidden: int = 64, lim: bool = True,
-                 v_scale: float = 1.0, lim_scale: float = 0.1):
+                 v_scale: float = 1.0, lim_scale: float = 0.1, lim_other: bool = False):
         super().__init__()
         self.delan = Lagrangian(joint_types, z_dim, hidden, softplus_offset=1e-2, v_scale=v_scale)
         self.lim = LIM(joint_types, z_dim, 16, lim_scale) if lim else None
+        # the other leg's insole force: the pelvis's vertical acceleration (module docstring)
+        self.lim_other = LIM(joint_types, z_dim, 16, lim_scale) if lim_other else None
         self.codes = nn.Embedding(n_trials, z_dim)
         nn.init.normal_(self.codes.weight, std=0.01)
         self.z_dim = z_dim
@@ -162,15 +193,19 @@ class SlowContextDeLaN(nn.Module):
     def z_of(self, trial_idx: torch.Tensor) -> torch.Tensor:
         return self.codes(trial_idx)
 
+    def force_torque(self, q, z, f_v):
+        """B(q, z) f_v (+ B_o(q, z) f_v,other); f_v (B,) or (B, 2) = [own, other] (`Flat.forces`)."""
+        own, other = (f_v[..., 0], f_v[..., 1]) if f_v.dim() == q.dim() else (f_v, None)
+        out = self.lim.contact_torque(q, z, own) if self.lim is not None else torch.zeros_like(q)
+        if self.lim_other is not None and other is not None:
+            out = out + self.lim_other.contact_torque(q, z, other)
+        return out
+
     def inverse(self, q, qd, qdd, z, f_v):
-        tau = _id(self.delan, q, qd, qdd, z)
-        if self.lim is not None:
-            tau = tau - self.lim.contact_torque(q, z, f_v)
-        return tau
+        return _id(self.delan, q, qd, qdd, z) - self.force_torque(q, z, f_v)
 
     def forward_dynamics(self, q, qd, tau, z, f_v):
-        rhs = tau + self.lim.contact_torque(q, z, f_v) if self.lim is not None else tau
-        return _fd(self.delan, q, qd, rhs, z)
+        return _fd(self.delan, q, qd, tau + self.force_torque(q, z, f_v), z)
 
     def terms(self, q, qd, z):
         return self.delan.terms(q, qd, z)
@@ -190,11 +225,15 @@ class PooledContext(nn.Module):
     def z_of(self, trial_idx):
         return self.z_trials[trial_idx]
 
+    @staticmethod
+    def _own(q, f_v):
+        return f_v[..., 0] if f_v.dim() == q.dim() else f_v     # a given run has its own insole only
+
     def inverse(self, q, qd, qdd, z, f_v):
-        return self.model.inverse(q, qd, qdd, z, f_v)
+        return self.model.inverse(q, qd, qdd, z, self._own(q, f_v))
 
     def forward_dynamics(self, q, qd, tau, z, f_v):
-        return self.model.forward_dynamics(q, qd, tau, z, f_v)
+        return self.model.forward_dynamics(q, qd, tau, z, self._own(q, f_v))
 
     def terms(self, q, qd, z):
         return self.model.terms(q, qd, z)
@@ -210,7 +249,7 @@ def make_base(flat: Flat, hidden: int = 64, z_dim: int = 4, seed: int = 0) -> Sl
     # torque spread per unit insole force where that is larger)
     v_scale = float(flat.tau[tr].std(0).max().clamp(min=1e-3))
     m = SlowContextDeLaN(flat.joint_types, len(flat.lengths), z_dim, hidden, lim=flat.has_insole,
-                         v_scale=v_scale, lim_scale=0.1)
+                         v_scale=v_scale, lim_scale=0.1, lim_other=flat.has_insole and flat.has_partner)
     return m.to(DTYPE)
 
 
@@ -232,8 +271,8 @@ def _forward(model, base, flat: Flat, b: torch.Tensor) -> torch.Tensor:
     z = base.z_of(flat.trial[b])
     if isinstance(model, ExtendedModel):
         he, hd, hdd = flat.exo_hist(b)
-        return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.f_v[b], he, hd, hdd)
-    return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.f_v[b])
+        return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b), he, hd, hdd)
+    return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b))
 
 
 def sq_errors(model, flat: Flat, idx: torch.Tensor) -> np.ndarray:
@@ -279,7 +318,8 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
 
 def extend(base: nn.Module, flat: Flat, effects, init: dict | None = None, max_delay: float = 0.1) -> ExtendedModel:
     """A deep copy of `base` wrapped with the section-4 terms (warm start: the base's weights as fitted)."""
-    return ExtendedModel(copy.deepcopy(base), flat.n, effects, dt=flat.dt, max_delay=max_delay, init=init)
+    return ExtendedModel(copy.deepcopy(base), flat.n, effects, dt=flat.dt, max_delay=max_delay, init=init,
+                         coupled_damping=False)
 
 
 def to_exo_model(base: SlowContextDeLaN, z: torch.Tensor, joint_names=None):
@@ -322,11 +362,15 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
 
     exo = to_exo_model(ext.base, z, joint_names)
     eff = [(e, j) for e, js in ext.effects.items() for j in js]
-    twin = ExtendedModel(exo, ext.n, eff, dt=ext.dt, max_delay=ext.max_delay, coulomb_eps=ext.coulomb_eps).to(torch.float64)
+    twin = ExtendedModel(exo, ext.n, eff, dt=ext.dt, max_delay=ext.max_delay, coulomb_eps=ext.coulomb_eps,
+                         coupled_damping=ext.coupled_damping).to(torch.float64)
     with torch.no_grad():
         for name, p in ext.named_parameters():
             if not name.startswith("base."):
                 dict(twin.named_parameters())[name].copy_(p.detach().to(torch.float64))
     md = {"dt": repr(float(dt if dt is not None else ext.dt))}
+    if getattr(ext.base, "lim_other", None) is not None:
+        md["omitted"] = ("the diagnosis base's mapping of the other leg's insole force (the engine has one insole "
+                         "input); this file holds the rest of the model")
     md.update(meta or {})
     return export(twin, path, meta=md), twin

@@ -157,16 +157,20 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    (fitted on training segments; it must lower held-out error with the physical sign) — only a screen;
 2. a screened candidate is fitted **jointly** with the whole model (warm start, the same optimiser schedule and
    minibatches as a reference refit of the base model alone); its held-out gain (paired, per sample) must have
-   a circular-block-bootstrap 95% CI (block length from the ACF) above 0 **and** above the noise floor (two
-   reference refits differing only in minibatch order);
+   a circular-block-bootstrap 95% CI (block length from the ACF) above 0, **and** gain − 1.96 √(SE² + σ_r²) > 0,
+   where σ_r is the refit noise (RMS held-out difference between the reference and twin refits that differ
+   only in minibatch order);
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual): the future exo torque
    cannot act now but shares the assistive controller's correlation with the human torque;
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
-5. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
+5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
+   one; trials where the data hold one task) where it is largest must still have a CI above 0 — a term that
+   only soaks up the misfit of the worst-fitted tasks is rejected;
+6. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
    add held-out gain beyond the noise floor on top of the already accepted ones (forward selection);
-6. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
+7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
 
 
 def write(out: Path, res: dict) -> dict:
@@ -211,6 +215,23 @@ def _metric_rows(b: dict, e: dict | None) -> list[str]:
     return rows
 
 
+def _evidence_lines(f: dict) -> list[str]:
+    """Which data carried the evidence of a finding: its held-out gain per task (or trial) and per subject."""
+    out = []
+    ti = f.get("task_invariance") or {}
+    if ti.get("groups"):
+        per = ", ".join(f"{g} {_fmt(v, 3)}" for g, v in sorted(ti["groups"].items(), key=lambda kv: -kv[1]))
+        rest = (f"; without {', '.join(ti['dropped'])}: {_fmt(ti['gain_rest'], 3)} CI {_fmt(ti['ci_rest'], 3)}"
+                if ti.get("dropped") else f" ({ti['note']})" if ti.get("note") else "")
+        out.append(f"  - gain by {ti['by']}: {per}{rest}")
+    sg = f.get("subject_gains") or {}
+    if sg:
+        out.append("  - gain by subject: " + ", ".join(f"{k} {_fmt(v['gain'], 3)} {_fmt(v['ci'], 3)}" for k, v in sg.items()))
+    if f.get("note"):
+        out.append(f"  - note: {f['note']}")
+    return out
+
+
 def markdown(rep: dict) -> str:
     d = rep.get("data", {})
     findings = rep["findings"]
@@ -226,6 +247,7 @@ def markdown(rep: dict) -> str:
             L.append(f"- **{f['effect']}** on **{f['joint']}**: {_fmt(f['estimate'])} {f['unit']} "
                      f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
+            L += _evidence_lines(f)
     else:
         L.append("- **Nothing found**: no candidate effect passed the decision rule on held-out data.")
     amb = [e for e in rep["rejected"] if e["status"] == "ambiguous"]
@@ -243,7 +265,9 @@ def markdown(rep: dict) -> str:
             L.append(f"- rollout {k} reduction: {_fmt(v['gain'], 3)} CI {_fmt(v['ci'], 3)}")
     nf = rep["baseline"].get("noise_floor")
     if nf:
-        L.append(f"\nRefit noise floor (two reference refits): {_fmt(nf['gain'], 3)} CI {_fmt(nf['ci'], 3)} (N m/kg)².")
+        L.append(f"\nRefit noise σ_r (RMS held-out difference of {len(nf.get('twin_differences', [])) or 1} twin refits "
+                 f"from the reference): {_fmt(nf.get('sigma'), 3)} (N m/kg)²; first twin {_fmt(nf['gain'], 3)} "
+                 f"CI {_fmt(nf['ci'], 3)}.")
     plots = rep.get("plots", {})
     L.append("")
     L.append("## Plots")

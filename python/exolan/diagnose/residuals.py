@@ -130,11 +130,11 @@ def rollout_errors(model, flat: Flat, starts: torch.Tensor, horizon: int = 20) -
         z = base.z_of(flat.trial[i])
         for h in range(horizon):
             if ext is None:
-                qdd = base.forward_dynamics(q, qd, flat.tau[i], z, flat.f_v[i])
+                qdd = base.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i))
             else:
                 he, hd, hdd = flat.exo_hist(i)
                 app, _, _ = ext.applied_exo(he, hd, hdd)
-                qdd = ext.forward_dynamics(q, qd, flat.tau[i], z, flat.f_v[i], flat.tau_e[i], app)
+                qdd = ext.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i), flat.tau_e[i], app)
             qd = qd + dt * qdd
             q = q + dt * qd
             i = i + 1
