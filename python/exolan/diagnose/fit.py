@@ -9,12 +9,16 @@ cannot carry q̇ within a step. A given run (`--model`) is used the same way: it
 
 Why the other leg's insole force: the hip rides on the pelvis, whose vertical acceleration is set by the
 ground reaction of *both* feet (Newton on the whole body: M a_p = f_v,left + f_v,right − M g). In the hip
-frame that acceleration is a change of effective gravity on the leg (d'Alembert) — a force the leg's own
-insole does not measure. Unmodelled, it leaves a hip residual that follows the gait cycle and that a
-damping, friction or exo-gain term soaks up, worst in jumps and calisthenics. Where a trial's partner
-(same subject and recording, other side) exists, the base therefore also learns B_o(q, z) f_v,other, a
-second insole mapping of the other leg's force. It is part of the diagnosis base only: the engine's weight
-format has one insole input, so an exported extended model leaves it out (it says so in its metadata).
+frame that acceleration changes the effective gravity on the leg (d'Alembert): the gravity torque scales
+with the total vertical load, g(q)(f_v,own + f_v,other)/(M g). The leg's own share is within reach of the
+insole mapping B(q, z) f_v; the other leg's share is not measured on this leg. Unmodelled, it leaves a hip
+residual that follows the gait cycle and that damping, friction or an exo gain soak up, worst in jumps and
+calisthenics. Where a trial's partner (same subject and recording, other side) exists, the base therefore
+adds κ ⊙ g(q, z) f_v,other/(M g) with one learned gain κ per joint: the shape of the term is the model's own
+gravity torque, so unlike a free second insole network it cannot imitate a velocity-dependent torque (a
+free network B_o(q, z) f_v,other halved a planted knee damping in a measured world). It is part of the
+diagnosis base only: the engine's weight format has one insole input, so an exported extended model leaves
+it out (its metadata says so).
 
 Why held-out *time*: every trial is cut into contiguous segments; one segment in four (rotating phase per
 trial) is held out. The model is tested where it was trained (same user, same task, same loads) but on
@@ -31,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..delan import Lagrangian, forward_dynamics as _fd, inverse_dynamics as _id, energy as _energy
+from ..delan import Lagrangian, energy as _energy, solve_inertia
 from ..lim import LIM
 from ..extensions import ExtendedModel, exo_derivatives, lag_table
 
@@ -49,7 +53,7 @@ class Flat:
     tau_e_d: torch.Tensor
     tau_e_dd: torch.Tensor
     f_v: torch.Tensor
-    f_o: torch.Tensor         # (N,) the other leg's insole force at the same instant (0 without a partner)
+    f_o: torch.Tensor         # (N,) the other leg's insole force / (M g) at the same instant (0 without a partner)
     mass: torch.Tensor
     valid: torch.Tensor
     trial: torch.Tensor       # (N,) trial index
@@ -65,6 +69,7 @@ class Flat:
     has_insole: bool
     has_partner: bool = False # every trial has its other-side recording (layout 1, both legs)
     tau_scale: np.ndarray = field(default_factory=lambda: np.ones(1))   # per-joint std of τ/m (train)
+    qdd_scale: np.ndarray = field(default_factory=lambda: np.ones(1))   # per-joint std of q̈ (train)
 
     def forces(self, idx) -> torch.Tensor:
         """The insole input of the models at rows idx: f_v (B,), or [f_v, f_v,other] (B, 2) with a partner."""
@@ -152,7 +157,7 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
         other = {"l": "r", "r": "l"}.get(side)
         o = side_of.get((str(t.subject), str(t.name), other)) if other else None
         if o is not None and lengths[o] == lengths[i] and getattr(trials[o], "f_v", None) is not None:
-            cols["f_o"].append(np.nan_to_num(np.asarray(trials[o].f_v, dtype=np.float64)))
+            cols["f_o"].append(np.nan_to_num(np.asarray(trials[o].f_v, dtype=np.float64)) / (float(t.mass) * 9.81))
             partners += 1
         else:
             cols["f_o"].append(np.zeros(lengths[i]))
@@ -169,6 +174,8 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
     tr = flat.index("train")
     s = (flat.tau[tr] / flat.mass[tr, None]).std(0).numpy()
     flat.tau_scale = np.where(s > 1e-9, s, 1.0)
+    a = flat.qdd[tr].std(0).numpy()
+    flat.qdd_scale = np.where(a > 1e-9, a, 1.0)
     return flat
 
 
@@ -184,8 +191,8 @@ class SlowContextDeLaN(nn.Module):
         super().__init__()
         self.delan = Lagrangian(joint_types, z_dim, hidden, softplus_offset=1e-2, v_scale=v_scale)
         self.lim = LIM(joint_types, z_dim, 16, lim_scale) if lim else None
-        # the other leg's insole force: the pelvis's vertical acceleration (module docstring)
-        self.lim_other = LIM(joint_types, z_dim, 16, lim_scale) if lim_other else None
+        # the other leg's load scales the effective gravity (module docstring): κ per joint
+        self.body_load = nn.Parameter(torch.zeros(len(joint_types))) if lim_other else None
         self.codes = nn.Embedding(n_trials, z_dim)
         nn.init.normal_(self.codes.weight, std=0.01)
         self.z_dim = z_dim
@@ -193,19 +200,28 @@ class SlowContextDeLaN(nn.Module):
     def z_of(self, trial_idx: torch.Tensor) -> torch.Tensor:
         return self.codes(trial_idx)
 
-    def force_torque(self, q, z, f_v):
-        """B(q, z) f_v (+ B_o(q, z) f_v,other); f_v (B,) or (B, 2) = [own, other] (`Flat.forces`)."""
-        own, other = (f_v[..., 0], f_v[..., 1]) if f_v.dim() == q.dim() else (f_v, None)
-        out = self.lim.contact_torque(q, z, own) if self.lim is not None else torch.zeros_like(q)
-        if self.lim_other is not None and other is not None:
-            out = out + self.lim_other.contact_torque(q, z, other)
-        return out
+    def _split(self, q, f_v):
+        """f_v (B,) or (B, 2) = [own force, other leg's load ratio] (`Flat.forces`)."""
+        return (f_v[..., 0], f_v[..., 1]) if f_v.dim() == q.dim() else (f_v, None)
+
+    def _rhs_terms(self, q, qd, z, f_v):
+        """H, c + g_eff − B f_v,own: everything on the left of H q̈ + ... = τ except H q̈."""
+        own, other = self._split(q, f_v)
+        H, c, g = self.delan.terms(q, qd, z)
+        if self.body_load is not None and other is not None:
+            g = g * (1.0 + self.body_load * other.unsqueeze(-1))
+        rest = c + g
+        if self.lim is not None:
+            rest = rest - self.lim.contact_torque(q, z, own)
+        return H, rest
 
     def inverse(self, q, qd, qdd, z, f_v):
-        return _id(self.delan, q, qd, qdd, z) - self.force_torque(q, z, f_v)
+        H, rest = self._rhs_terms(q, qd, z, f_v)
+        return (H @ qdd.unsqueeze(-1)).squeeze(-1) + rest
 
     def forward_dynamics(self, q, qd, tau, z, f_v):
-        return _fd(self.delan, q, qd, tau + self.force_torque(q, z, f_v), z)
+        H, rest = self._rhs_terms(q, qd, z, f_v)
+        return solve_inertia(H, tau - rest)
 
     def terms(self, q, qd, z):
         return self.delan.terms(q, qd, z)
@@ -253,6 +269,13 @@ def make_base(flat: Flat, hidden: int = 64, z_dim: int = 4, seed: int = 0) -> Sl
     return m.to(DTYPE)
 
 
+def inertia_of(model: nn.Module, q: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """H(q, z) of the Lagrangian inside a diagnosis model (slow-context base, pooled run, or extended)."""
+    base = _base_of(model)
+    lag = base.delan if isinstance(base, SlowContextDeLaN) else base.model.delan
+    return lag.inertia(q, z)
+
+
 def _base_of(model: nn.Module) -> nn.Module:
     return model.base if isinstance(model, ExtendedModel) else model
 
@@ -282,16 +305,28 @@ def sq_errors(model, flat: Flat, idx: torch.Tensor) -> np.ndarray:
 
 
 def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: float = 3e-2,
-          batch: int = 4096, seed: int = 0, weight_decay: float = 0.0, progress=None) -> list[float]:
-    """Minimise the mass-normalised torque MSE (per-joint scaled) on the training segments.
+          batch: int = 4096, seed: int = 0, weight_decay: float = 0.0, progress=None,
+          average: bool = False, w_acc: float = 0.1) -> list[float]:
+    """Minimise the mass-normalised torque MSE (per-joint scaled) on the training segments, plus `w_acc` times
+    the acceleration MSE (per-joint scaled by the std of q̈).
+
+    Why the acceleration term: torque errors alone leave H loose in directions the data excite little, and a
+    tiny H makes forward dynamics stiff enough that open-loop rollouts explode within a few steps. Because
+    the predicted torque is H q̈ + (terms without q̈), the forward-dynamics error is H⁻¹ (τ − τ̂) exactly: one
+    2x2 solve per sample, no separate forward pass.
 
     Adam with minibatches; the extension's physical scalars get their own (larger) step because they are
-    few and well scaled. Returns the loss history (every step).
+    few and well scaled. `average=True` ends on the running mean of the weights over the second half of
+    the steps (Polyak averaging; the networks' weights, not the extension's scalars): the minibatch noise
+    of the last iterates averages out, so two refits that
+    differ only in minibatch order end closer together — the refit noise every held-out gain is judged
+    against. Returns the loss history (every step).
     """
     g = torch.Generator().manual_seed(seed)
     tr = flat.index("train")
     base = _base_of(model)
     scale = torch.as_tensor(flat.tau_scale, dtype=DTYPE)
+    acc_scale = torch.as_tensor(flat.qdd_scale, dtype=DTYPE)
     if isinstance(model, ExtendedModel):
         groups = [{"params": model.base_parameters(), "lr": lr, "weight_decay": weight_decay},
                   {"params": model.ext_parameters(), "lr": lr_ext, "weight_decay": 0.0}]
@@ -301,18 +336,39 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     # cosine decay: the last steps settle the physical parameters instead of jittering around them
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=0.05 * lr)
     hist = []
+    # averaged: the networks only. An extension's physical scalar may still be moving towards its value
+    # during a refit; its running mean would lag behind (measured: knee damping 0.96 instead of 1.8).
+    params = list(groups[0]["params"])
+    avg, n_avg, start_avg = None, 0, steps // 2
     for step in range(steps):
         b = tr[torch.randint(len(tr), (min(batch, len(tr)),), generator=g)]
         pred = _forward(model, base, flat, b)
-        r = (pred - flat.tau[b]) / (flat.mass[b, None] * scale)
+        err = pred - flat.tau[b]
+        r = err / (flat.mass[b, None] * scale)
         loss = (r ** 2).sum(-1).mean()
+        if w_acc > 0:
+            H = inertia_of(model, flat.q[b], base.z_of(flat.trial[b]))
+            a_err = solve_inertia(H, err) / acc_scale
+            loss = loss + w_acc * (a_err ** 2).sum(-1).mean()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         sched.step()
         hist.append(float(loss.detach()))
+        if average and step >= start_avg:
+            with torch.no_grad():
+                if avg is None:
+                    avg = [p.detach().clone() for p in params]
+                else:
+                    for a, p in zip(avg, params):
+                        a.add_(p.detach() - a, alpha=1.0 / (n_avg + 1))
+            n_avg += 1
         if progress is not None:
             progress(step, hist[-1])
+    if avg is not None:
+        with torch.no_grad():
+            for a, p in zip(avg, params):
+                p.copy_(a)
     return hist
 
 
@@ -369,8 +425,8 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
             if not name.startswith("base."):
                 dict(twin.named_parameters())[name].copy_(p.detach().to(torch.float64))
     md = {"dt": repr(float(dt if dt is not None else ext.dt))}
-    if getattr(ext.base, "lim_other", None) is not None:
-        md["omitted"] = ("the diagnosis base's mapping of the other leg's insole force (the engine has one insole "
-                         "input); this file holds the rest of the model")
+    if getattr(ext.base, "body_load", None) is not None:
+        md["omitted"] = ("the diagnosis base's gravity scaling by the other leg's insole force (the engine has one "
+                         "insole input); this file holds the rest of the model")
     md.update(meta or {})
     return export(twin, path, meta=md), twin

@@ -154,12 +154,13 @@ def plot_gains(out: Path, results: list) -> str | None:
 
 RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none is tuned to a world):
 1. each candidate is first *screened* by a post-hoc least-squares correction of the reference residual
-   (fitted on training segments; it must lower held-out error with the physical sign) — only a screen;
+   (fitted on training segments; it must lower held-out error on average, with the physical sign) — only a
+   lenient screen, since the fitted model has already absorbed part of any effect;
 2. a screened candidate is fitted **jointly** with the whole model (warm start, the same optimiser schedule and
    minibatches as a reference refit of the base model alone); its held-out gain (paired, per sample) must have
    a circular-block-bootstrap 95% CI (block length from the ACF) above 0, **and** gain − 1.96 √(SE² + σ_r²) > 0,
    where σ_r is the refit noise (RMS held-out difference between the reference and twin refits that differ
-   only in minibatch order);
+   only in minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small);
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual): the future exo torque
    cannot act now but shares the assistive controller's correlation with the human torque;
@@ -167,7 +168,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
    one; trials where the data hold one task) where it is largest must still have a CI above 0 — a term that
-   only soaks up the misfit of the worst-fitted tasks is rejected;
+   only soaks up the misfit of the worst-fitted tasks is rejected (exo-driven terms are exempt: their evidence
+   sits where the exo torque changes fast, and rule 3 guards them);
 6. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
    add held-out gain beyond the noise floor on top of the already accepted ones (forward selection);
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""

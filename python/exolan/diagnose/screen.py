@@ -3,9 +3,11 @@
 This is *only a screen* that decides which candidates deserve a joint refit (the expensive step). Regressing
 the residual after the fact recovers just a fraction of a parameter — the fitted model has already absorbed
 part of the effect (DIAGNOSIS_PITFALLS.md) — so nothing here is reported as an estimate and nothing is
-accepted on it. A candidate goes on when its post-hoc correction, fitted on the training segments, lowers
-the held-out error (block-bootstrap CI above 0) with the physically allowed sign; a candidate whose
-correction does not help held-out data even after the fact cannot win a joint refit either.
+accepted on it. For the same reason the screen is lenient: a candidate goes on when its post-hoc
+correction, fitted on the training segments, lowers the held-out error on average (point estimate above 0;
+its CI is reported) with the physically allowed sign. A measured 35 ms exo delay had a post-hoc gain whose
+CI still reached below 0 but a joint-refit gain well clear of every noise; only candidates that do not
+help held-out data at all even after the fact are dropped here.
 
 Each candidate is linearised as a feature F (N, n) — the change of the predicted recorded torque per unit
 parameter — so the correction is θ F with one scalar θ:
@@ -109,7 +111,7 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
     b = stats.bootstrap_mean(d, n_boot=n_boot, seed=seed)
     c = LIBRARY[effect]
     sign_ok = theta > 0 if c.positive else True
-    passes = bool(b["ci"][0] > 0 and sign_ok)
-    reason = "" if passes else ("post-hoc estimate has the unphysical sign" if not sign_ok and b["ci"][0] > 0 else
+    passes = bool(b["mean"] > 0 and sign_ok)
+    reason = "" if passes else ("post-hoc estimate has the unphysical sign" if not sign_ok and b["mean"] > 0 else
                                 "no held-out gain even after the fact")
     return dict(passes=passes, theta=theta, gain=b["mean"], ci=b["ci"], sign_ok=bool(sign_ok), reason=reason, **extra)

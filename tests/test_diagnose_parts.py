@@ -1,0 +1,102 @@
+"""Diagnosis building blocks that decide what is found: the refit's Polyak averaging, the acceleration term,
+the other leg's load in the base, and the task-invariance rule. Fast (seconds)."""
+import copy
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, train
+from exolan.diagnose.procedure import Settings, _held_groups, _spread
+from exolan.diagnose.synthetic import two_link
+
+
+@pytest.fixture(scope="module")
+def arm():
+    trials, _ = two_link(n_trials=2, seconds=6.0, seed=3)
+    return prepare(trials)
+
+
+def _leg_pair(T=400, mass=70.0, seed=0):
+    """Two sides of one recording with different insole forces (for the partner pairing)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for side in ("l", "r"):
+        q = rng.normal(0, 0.3, (T, 2))
+        out.append(SimpleNamespace(subject="S01", task="walk", name="walk_1_1", side=side, mass=mass, dt=0.005,
+                                   joints=("hip", "knee"), joint_types=("revolute", "revolute"), q=q,
+                                   qd=rng.normal(0, 1, (T, 2)), qdd=rng.normal(0, 5, (T, 2)),
+                                   tau=rng.normal(0, 10, (T, 2)), tau_e=np.zeros((T, 2)),
+                                   f_v=np.abs(rng.normal(300 if side == "l" else 500, 50, T)),
+                                   cop=np.zeros((T, 2)), valid=np.ones(T, bool)))
+    return out
+
+
+def test_other_leg_load_is_paired_by_recording_and_normalised_by_weight():
+    trials = _leg_pair()
+    flat = prepare(trials)
+    assert flat.has_partner
+    T = len(trials[0].q)
+    np.testing.assert_allclose(flat.f_o[:T].numpy(), trials[1].f_v / (70.0 * 9.81), rtol=1e-5)
+    np.testing.assert_allclose(flat.f_o[T:].numpy(), trials[0].f_v / (70.0 * 9.81), rtol=1e-5)
+    assert flat.forces(torch.arange(5)).shape == (5, 2)
+    base = make_base(flat, hidden=8)
+    assert base.body_load is not None and base.lim is not None
+    # a single side has no partner: the base gets no load term
+    single = prepare(trials[:1])
+    assert not single.has_partner and make_base(single, hidden=8).body_load is None
+
+
+def test_forward_error_is_inertia_inverse_of_torque_error():
+    """The acceleration term of the fits: q̈(τ) − q̈ = H⁻¹ (τ − τ̂(q̈)), with the LIM and the load term active."""
+    flat = prepare(_leg_pair())
+    base = make_base(flat, hidden=8, seed=1)
+    with torch.no_grad():
+        base.body_load.fill_(0.7)
+        b = torch.arange(0, 50)
+        z = base.z_of(flat.trial[b])
+        f = flat.forces(b)
+        tau_hat = base.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, f)
+        qdd_fd = base.forward_dynamics(flat.q[b], flat.qd[b], flat.tau[b], z, f)
+        H = inertia_of(base, flat.q[b], z)
+        rhs = torch.linalg.solve(H.double(), (flat.tau[b] - tau_hat).double().unsqueeze(-1))[..., 0]
+    np.testing.assert_allclose((qdd_fd - flat.qdd[b]).double().numpy(), rhs.numpy(), rtol=2e-3, atol=2e-3)
+
+
+def test_refit_averages_the_networks_but_not_the_physical_scalars(arm):
+    base = make_base(arm, hidden=8, seed=0)
+    ext = extend(base, arm, [("viscous_damping", 0)])
+    snaps = []
+
+    def grab(step, loss):
+        snaps.append((copy.deepcopy(ext.base.delan.V[0].weight.detach()), float(ext.damping_diag[0].detach())))
+
+    steps = 10
+    train(ext, arm, steps, batch=256, seed=0, average=True, progress=grab)
+    mean_w = torch.stack([w for w, _ in snaps[steps // 2:]]).mean(0)
+    torch.testing.assert_close(ext.base.delan.V[0].weight.detach(), mean_w, rtol=1e-5, atol=1e-6)
+    assert float(ext.damping_diag[0].detach()) == pytest.approx(snaps[-1][1])   # last iterate, not the mean
+    assert snaps[-1][1] != pytest.approx(np.mean([d for _, d in snaps[steps // 2:]]))
+
+
+def test_task_invariance_rule_rejects_a_gain_from_one_task_only():
+    rng = np.random.default_rng(0)
+    groups = np.repeat(np.array(["walk", "squat", "jump", "run"]), 2000)
+    s = Settings(n_boot=200)
+    # a joint property: the same small gain in every task (plus noise)
+    d_all = 1e-3 + 1e-3 * rng.standard_normal(groups.size)
+    assert _spread(d_all, groups, "task", s)["passes"]
+    # a misfit soaked up in one task: large there, nothing elsewhere
+    d_one = np.where(groups == "jump", 5e-3, 0.0) + 1e-3 * rng.standard_normal(groups.size)
+    res = _spread(d_one, groups, "task", s)
+    assert not res["passes"] and res["dropped"] == ["jump"]
+    assert set(res["groups"]) == {"walk", "squat", "jump", "run"}
+    # one recording: not testable, the rule does not decide
+    assert _spread(d_one, np.zeros(groups.size, dtype=str), "none", s)["passes"]
+
+
+def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):
+    held = arm.index("held")
+    g, kind = _held_groups(arm, held)
+    assert kind == "trial" and len(set(g)) == 2
