@@ -280,7 +280,7 @@ def _held_groups(flat: Flat, held: torch.Tensor) -> tuple[np.ndarray, str]:
 
 def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings) -> dict:
     """Held-out gain per group, and the gain without the quarter of the groups (≥ 1) where it is largest."""
-    labels = [g for g in np.unique(groups) if (groups == g).any()]
+    labels = list(np.unique(groups))
     per = {str(g): float(d[groups == g].mean()) for g in labels}
     out = dict(by=kind, groups=per)
     if kind == "none" or len(labels) < 2:
@@ -320,16 +320,6 @@ def load_trials(data):
     from .. import data as _data
     ds = _data.load(str(data))
     return list(getattr(ds, "trials", ds))
-
-
-def load_run_model(run, flat: Flat):
-    """A trained run as a slow-context base: its encoder's z averaged over each trial, then frozen."""
-    from .. import train as _train
-    model = _train.load_model(run) if hasattr(_train, "load_model") else _train.load_run(run)
-    model = model.to(DTYPE)
-    if not getattr(model, "is_lagrangian", True):
-        raise ValueError("diagnosis needs a DeLaN-based run (its physics is what is diagnosed)")
-    raise NotImplementedError  # replaced below once the run format is known
 
 
 def _refit(model, flat: Flat, s: Settings, seed_offset: int = 1):
