@@ -28,9 +28,9 @@ statistic of the data at hand):
    calisthenics, for instance) helps there and nowhere else. The held-out gain is split by task (by trial
    where the data hold a single task) and the quarter of the groups (at least one) where it is largest is
    dropped; the gain on the rest must still have a CI above 0. Data with a single trial cannot be split:
-   the report says so and the rule is skipped. Effects driven by the exo torque (delay, gain, strap) are
-   exempt: their evidence sits where the exo torque changes fast, which can be a few tasks, and rule 3 is
-   their guard; their gain by task is still reported.
+   the report says so and the rule is skipped. It applies to exo-driven terms too: their evidence sits where
+   the exo torque changes fast, so a small delay may miss it, but without it a clean world's hip "delay"
+   resting on jumps and calisthenics beat its future-torque null.
 6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap) on the same joint, when
    both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`.
 7. **Absorbable** effects (encoder offset, torque bias, payload) are reported as `absorbable` with their
@@ -419,9 +419,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             entry["passes_gain"] = bool(g["ci"][0] > 0)
             entry["passes_floor"] = _above_noise(g, sigma_r)
             entry["task_invariance"] = _spread(e_ref - e, groups, group_kind, s)
-            # friction acts wherever the joint moves; an exo-driven term leaves evidence only where the exo
-            # torque changes fast (DIAGNOSIS_PITFALLS: saturation hides effects) and has its own null (rule 3)
-            entry["passes_invariance"] = entry["task_invariance"]["passes"] or c.needs_exo
+            # Every term, exo-driven ones included: exempting those (their evidence sits where the exo torque
+            # changes fast, and rule 3 guards them) let a clean world's hip "delay" through, its gain resting on
+            # jump_in_place and calisthenics with the future-torque null beaten (measured, pipeline world).
+            entry["passes_invariance"] = entry["task_invariance"]["passes"]
             entry["subject_gains"] = _subject_gains(e_ref - e, held_subject, s)
             fitted[(effect, j)] = (ext, e)
             _log(s, f"{effect:18s} {name:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {g['gain']:.3g} "
@@ -534,7 +535,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
             inv = _spread(cur_e - e_both, groups, group_kind, s)
             e["conditional_gain"]["task_invariance"] = inv
-            if _above_noise(g, sigma_r) and (inv["passes"] or LIBRARY[e["effect"]].needs_exo):
+            if _above_noise(g, sigma_r) and inv["passes"]:
                 e["heldout_gain"] = g["gain"]     # rank the rest by what they add
                 fitted[(e["effect"], jj)] = (both, e_both)
             else:

@@ -168,8 +168,7 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
    one; trials where the data hold one task) where it is largest must still have a CI above 0 — a term that
-   only soaks up the misfit of the worst-fitted tasks is rejected (exo-driven terms are exempt: their evidence
-   sits where the exo torque changes fast, and rule 3 guards them);
+   only soaks up the misfit of the worst-fitted tasks is rejected;
 6. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
    add held-out gain beyond the noise floor on top of the already accepted ones (forward selection);
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
