@@ -3,7 +3,7 @@
 The hidden-effect tests read effects.json only to *check* the report, never to steer the diagnosis. Default
 run: the statistics, the layout-2 linear drive (viscous friction with random magnitude and seed / clean), a
 clean exoskeleton world and one with hidden knee damping (random magnitude and seed), all through the full
-diagnosis (screen, joint refits, decision rule, report) — one to two minutes per world on two quiet cores.
+diagnosis (screen, joint refits, decision rule, report) — four to five minutes per world on two quiet cores.
 Every hidden-effect world (knee damping, hip Coulomb, exo delay, strap, encoder offset, clean) runs with
 `pytest -m slow tests/test_diagnose.py`.
 """
