@@ -334,6 +334,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     torch.manual_seed(s.seed)
     trials = trials_loaded if trials_loaded is not None else load_trials(data)
     flat = prepare(trials, max_delay=s.max_delay, seed=s.seed)
+    if s.joints is not None and set(s.joints) - set(flat.joints):
+        raise ValueError(f"unknown joint(s) {sorted(set(s.joints) - set(flat.joints))}; the data have {list(flat.joints)}")
     held = flat.index("held")
     _log(s, f"{len(trials)} trials, {flat.q.shape[0]} samples ({len(flat.index('train'))} train, "
             f"{len(held)} held out), joints {flat.joints} {flat.joint_types}, exo={flat.has_exo}, "
@@ -376,8 +378,6 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
 
     # 2. screen every candidate post hoc (cheap), then fit the promising ones jointly (warm start, same
     #    schedule and minibatches as the reference)
-    if s.joints is not None and set(s.joints) - set(flat.joints):
-        raise ValueError(f"unknown joint(s) {sorted(set(s.joints) - set(flat.joints))}; the data have {list(flat.joints)}")
     joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
     subjects = sorted({m["subject"] for m in flat.trial_meta})
     results = []
@@ -631,7 +631,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 results=results)
 
 
-_PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "estimate", "ci", "unit", "heldout_gain", "status", "reason",
+_PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "estimate", "ci", "unit",
+           "heldout_gain", "status", "reason",
            "heldout_gain_ci", "relative_gain", "relative_gain_ci", "identifiable", "null_gain", "rivals", "vs",
            "estimate_warm_start", "ci_warm_start", "ci_method", "note", "kind", "conditional_gain", "screen")
 
