@@ -96,6 +96,40 @@ def test_task_invariance_rule_rejects_a_gain_from_one_task_only():
     assert _spread(d_one, np.zeros(groups.size, dtype=str), "none", s)["passes"]
 
 
+def _by_group(theta: dict, se: dict):
+    """A stand-in for `_param_by_group`: fixed per-group estimates; "rest" pools the groups it is given."""
+    def f(masks):
+        return {name: dict(estimate=theta[name], se=se[name]) for name in masks if name in theta}
+    return f
+
+
+def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disagreeing_ones():
+    """Rule 5's second path: the rest's gain is not significant, but the rest identify θ and the tasks agree
+    (Cochran's Q) — a small real effect; the same with tasks that disagree — a misfit soaked up differently
+    in each task; and a task made worse beyond its noise fails whatever θ says."""
+    rng = np.random.default_rng(1)
+    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
+    s = Settings(n_boot=200)
+    d = np.where(groups == "calisthenics", 3e-4, 2e-5) + 3e-3 * rng.standard_normal(groups.size)
+    assert not _spread(d, groups, "task", s)["passes"]          # the gain path alone fails
+    se = dict(walk=0.003, squat=0.006, calisthenics=0.005, rest=0.0026)
+    agree = dict(walk=0.025, squat=0.036, calisthenics=0.029, rest=0.0275)
+    res = _spread(d, groups, "task", s, by_group=_by_group(agree, se))
+    assert res["passes"] and res["consistent"] and res["heterogeneity"]["p"] > 0.05
+    differ = dict(walk=0.020, squat=0.045, calisthenics=0.11, rest=0.03)
+    res = _spread(d, groups, "task", s, by_group=_by_group(differ, se))
+    assert not res["passes"] and not res["consistent"] and res["heterogeneity"]["p"] < 0.05
+    unidentified = dict(agree, rest=0.004)
+    assert not _spread(d, groups, "task", s, by_group=_by_group(unidentified, se))["passes"]
+    # a group made clearly worse: fails even with agreeing θ and a gain elsewhere
+    d_hurt = np.where(groups == "walk", -2e-3, 1e-3) + 1e-4 * rng.standard_normal(groups.size)
+    res = _spread(d_hurt, groups, "task", s, by_group=_by_group(agree, se), sigma_g=dict(walk=1e-4))
+    assert res["hurt"] == ["walk"] and not res["passes"]
+    # ... but not when that group's refit noise is as large as the loss
+    res = _spread(d_hurt, groups, "task", s, sigma_g=dict(walk=2e-3))
+    assert res["hurt"] == []
+
+
 def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):
     held = arm.index("held")
     g, kind = _held_groups(arm, held)

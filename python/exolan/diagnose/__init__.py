@@ -46,7 +46,8 @@ def _pooled_base(model, trials):
             z = model.context(ctx.unsqueeze(0))[0]
             ok = torch.as_tensor(np.asarray(t.valid, bool))
             zs.append(z[ok].mean(0) if ok.any() and z.shape[-1] else z.mean(0) if z.shape[-1] else z[0])
-    return PooledContext(model, torch.stack(zs))
+    # the other leg's load term is active only where a trial's partner (other side) is in the data
+    return PooledContext(model, torch.stack(zs), other_leg_load=True)
 
 
 def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dict:

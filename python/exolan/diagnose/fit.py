@@ -231,25 +231,42 @@ class SlowContextDeLaN(nn.Module):
 
 
 class PooledContext(nn.Module):
-    """A trained run's model with its context pooled (averaged) per trial and frozen — a slow context."""
+    """A trained run's model with its context pooled (averaged) per trial and frozen — a slow context.
 
-    def __init__(self, model: nn.Module, z_trials: torch.Tensor):
+    With `other_leg_load` the diagnosis adds the same gravity scaling by the other leg's load as its own base
+    (module docstring): κ ⊙ g(q, z) f_v,other/(M g), κ learned in the refits from 0. The trained run never
+    saw the other insole; without the term its hip keeps the misfit of the pelvis's vertical acceleration.
+    """
+
+    def __init__(self, model: nn.Module, z_trials: torch.Tensor, other_leg_load: bool = False):
         super().__init__()
         self.model = model
         self.register_buffer("z_trials", z_trials)
+        self.body_load = (nn.Parameter(torch.zeros(len(model.joint_types), dtype=z_trials.dtype))
+                          if other_leg_load else None)
 
     def z_of(self, trial_idx):
         return self.z_trials[trial_idx]
+
+    def _load_torque(self, q, z, f_v):
+        """κ ⊙ g(q, z) f_v,other (0 without the term or without a partner)."""
+        if self.body_load is None or f_v.dim() != q.dim():
+            return None
+        g = self.model.terms(q, torch.zeros_like(q), z)[2]
+        return self.body_load * g * f_v[..., 1].unsqueeze(-1)
 
     @staticmethod
     def _own(q, f_v):
         return f_v[..., 0] if f_v.dim() == q.dim() else f_v     # a given run has its own insole only
 
     def inverse(self, q, qd, qdd, z, f_v):
-        return self.model.inverse(q, qd, qdd, z, self._own(q, f_v))
+        tau = self.model.inverse(q, qd, qdd, z, self._own(q, f_v))
+        extra = self._load_torque(q, z, f_v)
+        return tau if extra is None else tau + extra
 
     def forward_dynamics(self, q, qd, tau, z, f_v):
-        return self.model.forward_dynamics(q, qd, tau, z, self._own(q, f_v))
+        extra = self._load_torque(q, z, f_v)
+        return self.model.forward_dynamics(q, qd, tau if extra is None else tau - extra, z, self._own(q, f_v))
 
     def terms(self, q, qd, z):
         return self.model.terms(q, qd, z)

@@ -27,10 +27,13 @@ statistic of the data at hand):
    misfit of the tasks the conservative model fits worst (unmodelled pelvis motion in jumps and
    calisthenics, for instance) helps there and nowhere else. The held-out gain is split by task (by trial
    where the data hold a single task) and the quarter of the groups (at least one) where it is largest is
-   dropped; the gain on the rest must still have a CI above 0. Data with a single trial cannot be split:
-   the report says so and the rule is skipped. It applies to exo-driven terms too: their evidence sits where
-   the exo torque changes fast, so a small delay may miss it, but without it a clean world's hip "delay"
-   resting on jumps and calisthenics beat its future-torque null.
+   set aside. The rest must still show a gain (CI above 0), or — the more sensitive test for a small effect
+   such as a 35 ms delay, whose gain on the other tasks cannot beat a refit's noise — identify the parameter
+   on their own (one Gauss-Newton step with HAC SE on their held-out residual) while every group's θ agrees
+   (Cochran's Q, p > 0.05). And no group may be made worse beyond its sampling and refit noise (Bonferroni
+   over the groups). Data with a single trial cannot be split: the report says so and the rule is skipped.
+   It applies to exo-driven terms too: a clean world's hip "delay" resting on jumps and calisthenics beat
+   its future-torque null; its tasks wanted 0.02 s (standing) to 0.11 s (calisthenics), Q's p = 3e-6.
 6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap) on the same joint, when
    both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`.
 7. **Absorbable** effects (encoder offset, torque bias, payload) are reported as `absorbable` with their
@@ -60,6 +63,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import stats as scipy_stats
 
 from ..extensions import ExtendedModel
 from . import residuals as R
@@ -128,42 +132,81 @@ def _leak_lag(model, flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) ->
     return int(-lags[sel][np.argmax(vals[sel])]) if sel.any() else min_lag
 
 
-def _param_ci(model: ExtendedModel, flat: Flat, effect: str, j: int) -> dict:
-    """Estimate and 95% CI of (effect, joint) by the HAC sandwich on the training residuals.
-
-    Linearise the prediction in the physical parameter θ at its fitted value (central finite difference
-    through the raw parameter), regress the residual on that sensitivity with statsmodels OLS and a
-    Newey-West covariance; the coefficient's SE is θ's conditional standard error given the rest of the
-    model (it ignores the networks' flexibility, so it is a lower bound on the uncertainty; the held-out
-    gain and the rivals' comparison guard against over-confidence).
-    """
-    import statsmodels.api as sm
-
+def _sensitivity(model: ExtendedModel, flat: Flat, effect: str, j: int, idx: torch.Tensor):
+    """The fitted physical parameter θ of (effect, joint j), and at the rows idx the mass-normalised residual
+    r and its sensitivity J = ∂τ̂/∂θ (central finite difference through the raw parameter), both stacked
+    joint-major. None for J when θ does not move (a parameter at a hard bound)."""
     raw, theta = _raw_and_theta(model, effect, j)
-    tr = flat.index("train")
-    if len(tr) > 20000:
-        tr = tr[torch.linspace(0, len(tr) - 1, 20000).long()]
     scale = torch.as_tensor(flat.tau_scale, dtype=DTYPE)
-    norm = flat.mass[tr, None] * scale
+    norm = flat.mass[idx, None] * scale
     h = 1e-2
     with torch.no_grad():
         p0 = raw.data[j].clone()
         est = theta()
-        raw.data[j] = p0 + h; tp = predict(model, flat, tr); th_p = theta()
-        raw.data[j] = p0 - h; tm = predict(model, flat, tr); th_m = theta()
+        raw.data[j] = p0 + h; tp = predict(model, flat, idx); th_p = theta()
+        raw.data[j] = p0 - h; tm = predict(model, flat, idx); th_m = theta()
         raw.data[j] = p0
-        t0 = predict(model, flat, tr)
+        t0 = predict(model, flat, idx)
+    r = ((flat.tau[idx] - t0) / norm).numpy().astype(np.float64).T.reshape(-1)
     dth = th_p - th_m
     if not np.isfinite(dth) or abs(dth) < 1e-15:
-        return dict(estimate=float(est), ci=[float("nan"), float("nan")], se=float("nan"))
-    J = ((tp - tm) / dth / norm).numpy().astype(np.float64).T.reshape(-1)        # joint-major stacking
-    r = ((flat.tau[tr] - t0) / norm).numpy().astype(np.float64).T.reshape(-1)
-    if np.std(J) == 0:
-        return dict(estimate=float(est), ci=[float("nan"), float("nan")], se=float("nan"))
-    lags = stats.block_length(r[: len(tr)])
+        return float(est), None, r
+    J = ((tp - tm) / dth / norm).numpy().astype(np.float64).T.reshape(-1)
+    return float(est), (J if np.std(J) > 0 else None), r
+
+
+def _hac_step(J: np.ndarray, r: np.ndarray, n_rows: int) -> tuple[float, float, int]:
+    """Gauss-Newton step of θ that the residual r asks for along the sensitivity J, and its Newey-West SE
+    (statsmodels OLS, HAC lags = the ACF block length of the first joint's residual)."""
+    import statsmodels.api as sm
+
+    lags = stats.block_length(r[:n_rows])
     fitres = sm.OLS(r, J[:, None]).fit(cov_type="HAC", cov_kwds={"maxlags": int(lags)})
-    se = float(fitres.bse[0])
-    return dict(estimate=float(est), ci=[float(est - 1.96 * se), float(est + 1.96 * se)], se=se, hac_lags=int(lags))
+    return float(fitres.params[0]), float(fitres.bse[0]), int(lags)
+
+
+def _param_ci(model: ExtendedModel, flat: Flat, effect: str, j: int) -> dict:
+    """Estimate and 95% CI of (effect, joint) by the HAC sandwich on the training residuals.
+
+    Linearise the prediction in the physical parameter θ at its fitted value, regress the residual on that
+    sensitivity with statsmodels OLS and a Newey-West covariance; the coefficient's SE is θ's conditional
+    standard error given the rest of the model (it ignores the networks' flexibility, so it is a lower bound
+    on the uncertainty; the held-out gain and the rivals' comparison guard against over-confidence).
+    """
+    tr = flat.index("train")
+    if len(tr) > 20000:
+        tr = tr[torch.linspace(0, len(tr) - 1, 20000).long()]
+    est, J, r = _sensitivity(model, flat, effect, j, tr)
+    if J is None:
+        return dict(estimate=float(est), ci=[float("nan"), float("nan")], se=float("nan"))
+    _, se, lags = _hac_step(J, r, len(tr))
+    return dict(estimate=float(est), ci=[float(est - 1.96 * se), float(est + 1.96 * se)], se=se, hac_lags=lags)
+
+
+def _param_by_group(model: ExtendedModel, flat: Flat, effect: str, j: int, held: torch.Tensor,
+                    masks: dict) -> dict:
+    """θ as the held-out samples of each subset (name → mask over `held`) would have it (rule 5).
+
+    One Gauss-Newton step from the fitted θ on each subset, with the networks fixed: θ_S = θ̂ + β_S where β_S
+    regresses the subset's held-out residual on the sensitivity ∂τ̂/∂θ (HAC SE). A term that soaks up one
+    task's misfit wants a large θ there and another elsewhere; a property of the joint wants the same θ
+    wherever the data carry evidence, and an uninformative subset (a joint that barely moves, an actuator
+    at its limit) has a wide interval that contradicts nothing. Subsets too small or without sensitivity
+    are left out.
+    """
+    out = {}
+    for name, mask in masks.items():
+        idx = held[torch.as_tensor(np.asarray(mask, bool))]
+        if len(idx) < 50:
+            continue
+        if len(idx) > 20000:
+            idx = idx[torch.linspace(0, len(idx) - 1, 20000).long()]
+        est, J, r = _sensitivity(model, flat, effect, j, idx)
+        if J is None:
+            continue
+        step, se, _ = _hac_step(J, r, len(idx))
+        out[name] = dict(estimate=est + step, se=se)
+    return out
 
 
 def _with_refit_spread(pci: dict, other: dict) -> dict:
@@ -202,6 +245,11 @@ def _raw_and_theta(model: ExtendedModel, effect: str, j: int):
         # θ = compliance 1/k (its neutral value 0 is finite); converted to k for the report
         return model.compliance_raw, lambda: float(model.compliance()[j])
     raise ValueError(effect)
+
+
+def _neutral(effect: str) -> float:
+    """The no-effect value of the parameter θ that `_raw_and_theta` returns (strap: compliance 0)."""
+    return 0.0 if effect == "strap_compliance" else LIBRARY[effect].neutral
 
 
 def _report_param(effect: str, pci: dict) -> tuple[float, list[float]]:
@@ -278,20 +326,80 @@ def _held_groups(flat: Flat, held: torch.Tensor) -> tuple[np.ndarray, str]:
     return np.zeros(len(tri), dtype=str), "none"
 
 
-def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings) -> dict:
-    """Held-out gain per group, and the gain without the quarter of the groups (≥ 1) where it is largest."""
+def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=None, neutral: float = 0.0,
+            sigma_g: dict | None = None) -> dict:
+    """Rule 5: the held-out gain per group, and whether the evidence holds beyond the groups where it is largest.
+
+    The quarter of the groups (≥ 1) with the largest gain is set aside. The rule passes when the rest still
+    show a gain (bootstrap CI above 0) or, given `by_group` (name → mask over the held-out samples →
+    `_param_by_group`), when the rest identify the parameter on their own (θ_rest's 95% CI excludes the
+    no-effect value) and the groups agree on it: Cochran's Q of the per-group θ (inverse-variance weights,
+    HAC SEs) against χ² with groups − 1 degrees of freedom (scipy), p > 0.05. The parameter test is the
+    more sensitive one for a small effect: it asks only for the direction the residual wants, while a gain
+    has to beat a refit's noise; a term that lives on some tasks' misfit wants a different θ in each task
+    (measured: a clean world's hip "delay" wanted 0.02 s in standing and 0.11 s in calisthenics, both
+    tight). A gain on the rest whose CI lies below 0 fails the rule whatever θ says.
+
+    And a property of the joint makes no group worse: a group whose gain lies below 0 by more than its
+    sampling and refit uncertainty (block-bootstrap SE and `sigma_g`, the twin refits' RMS difference on
+    that group), at a Bonferroni-corrected 95% over the groups, fails the rule. A term that soaks up the
+    misfit of some tasks typically costs accuracy on others (measured: a clean world's hip "delay" of 39 ms
+    that other tasks agreed with lost 1.2e-3 (N m/kg)² on push-pull).
+    """
     labels = list(np.unique(groups))
     per = {str(g): float(d[groups == g].mean()) for g in labels}
     out = dict(by=kind, groups=per)
     if kind == "none" or len(labels) < 2:
         out.update(passes=True, note="a single recording: task invariance not testable")
         return out
+    hurt, sd = [], {}
+    z = float(scipy_stats.norm.ppf(1 - 0.025 / len(labels)))
+    for g in labels:
+        b = stats.bootstrap_mean(d[groups == g], n_boot=max(s.n_boot // 4, 100), seed=s.seed)
+        sd[str(g)] = math.sqrt(b["se"] ** 2 + (sigma_g or {}).get(str(g), 0.0) ** 2)
+        if b["mean"] + z * sd[str(g)] < 0:
+            hurt.append(str(g))
+    out.update(group_sd=sd, hurt=hurt)
     k = max(1, int(math.ceil(len(labels) / 4)))
     top = sorted(per, key=lambda g: -per[g])[:k]
-    rest = ~np.isin(groups, top)
-    b = stats.bootstrap_mean(d[rest], n_boot=s.n_boot, seed=s.seed)
+    in_top = np.isin(groups, top)
+    b = stats.bootstrap_mean(d[~in_top], n_boot=s.n_boot, seed=s.seed)
     out.update(dropped=top, gain_rest=b["mean"], ci_rest=b["ci"], passes=bool(b["ci"][0] > 0))
+    if by_group is not None:
+        pg = by_group({"rest": ~in_top, **{str(g): groups == g for g in labels}})
+        if "rest" in pg and len([g for g in labels if str(g) in pg]) >= 2:
+            rest = pg["rest"]
+            th = np.array([pg[str(g)]["estimate"] for g in labels if str(g) in pg])
+            w = 1.0 / np.square([pg[str(g)]["se"] for g in labels if str(g) in pg])
+            Q = float(np.sum(w * (th - np.sum(w * th) / np.sum(w)) ** 2))
+            p_het = float(scipy_stats.chi2.sf(Q, len(th) - 1))
+            lo, hi = rest["estimate"] - 1.96 * rest["se"], rest["estimate"] + 1.96 * rest["se"]
+            identified = bool(lo > neutral or hi < neutral)
+            consistent = bool(identified and p_het > 0.05)
+            out.update(theta_by_group={g: v for g, v in pg.items() if g != "rest"}, theta_rest=rest["estimate"],
+                       theta_rest_ci=[lo, hi], heterogeneity=dict(Q=Q, df=len(th) - 1, p=p_het),
+                       consistent=consistent)
+            if consistent and not out["passes"] and b["ci"][1] >= 0:
+                out["passes"] = True
+                out["note"] = (f"without {', '.join(top)} the held-out gain is not significant, but the other "
+                               f"{kind}s identify the parameter on their own and every {kind} agrees with it")
+    if hurt:
+        out["passes"] = False
     return out
+
+
+def _invariance_reason(ti: dict) -> str:
+    """Why rule 5 failed, in words."""
+    if ti.get("hurt"):
+        return (f"it makes {', '.join(ti['hurt'])} worse on held-out data (a property of the joint makes no "
+                f"{ti['by']} worse)")
+    why = (f"the gain rests on {', '.join(ti['dropped'])}: without it the held-out gain is {ti['gain_rest']:.3g} "
+           f"[{ti['ci_rest'][0]:.3g}, {ti['ci_rest'][1]:.3g}] (a property of the joint helps in every {ti['by']})")
+    if "theta_rest" in ti:
+        why += (f"; there the parameter is {ti['theta_rest']:.3g} [{ti['theta_rest_ci'][0]:.3g}, "
+                f"{ti['theta_rest_ci'][1]:.3g}], and the {ti['by']}s' estimates "
+                f"{'agree' if ti['heterogeneity']['p'] > 0.05 else 'differ'} (Cochran Q p = {ti['heterogeneity']['p']:.2g})")
+    return why
 
 
 def _subject_gains(d: np.ndarray, subjects_of_held: np.ndarray, s: Settings) -> dict:
@@ -351,12 +459,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                        f"{s.steps_base} steps")
     else:
         base = model
-        base_source = "given model, context pooled per trial"
+        base_source = ("given model, context pooled per trial" +
+                       (" + gravity scaled by the other leg load" if flat.has_partner else ""))
     _log(s, f"base fitted in {time.time() - t0:.0f} s")
     ref = copy.deepcopy(base)
     _refit(ref, flat, s)
     e_ref = sq_errors(ref, flat, held).sum(1)
-    deltas = []
+    deltas, twin_d = [], []
     for k in range(max(int(s.n_twins), 1)):
         twin = copy.deepcopy(base)
         _refit(twin, flat, s, 2 + k)
@@ -364,11 +473,14 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         if k == 0:
             floor = _gain(e_ref, e_twin, s)
         deltas.append(float((e_ref - e_twin).mean()))
+        twin_d.append(e_ref - e_twin)
     sigma_r = float(np.sqrt(np.mean(np.square(deltas))))
     _log(s, f"reference held-out MSE {e_ref.mean():.4g} (N m/kg)²; refit noise σ_r {sigma_r:.3g} "
             f"({len(deltas)} twin refits)")
 
     groups, group_kind = _held_groups(flat, held)
+    # the refit noise of each group's mean gain (rule 5's "no group is made worse")
+    sigma_g = {str(g): float(np.sqrt(np.mean([d[groups == g].mean() ** 2 for d in twin_d]))) for g in np.unique(groups)}
     held_subject = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[held].numpy()])
     starts = R.rollout_starts(flat, s.horizon, seed=s.seed)
     baseline, ro_base = _metrics(ref, flat, s, starts)
@@ -418,7 +530,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 entry["vs"] = float(ext.stribeck()[1][j].detach())
             entry["passes_gain"] = bool(g["ci"][0] > 0)
             entry["passes_floor"] = _above_noise(g, sigma_r)
-            entry["task_invariance"] = _spread(e_ref - e, groups, group_kind, s)
+            entry["task_invariance"] = _spread(
+                e_ref - e, groups, group_kind, s, neutral=_neutral(effect),
+                by_group=lambda m, ext=ext, effect=effect, j=j: _param_by_group(ext, flat, effect, j, held, m),
+                sigma_g=sigma_g)
             # Every term, exo-driven ones included: exempting those (their evidence sits where the exo torque
             # changes fast, and rule 3 guards them) let a clean world's hip "delay" through, its gain resting on
             # jump_in_place and calisthenics with the future-torque null beaten (measured, pipeline world).
@@ -471,10 +586,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             if not entry["identifiable"]:
                 why.append("parameter not identified (CI reaches the no-effect value / boundary)")
             if entry["passes_gain"] and not entry["passes_invariance"]:
-                ti = entry["task_invariance"]
-                why.append(f"the gain rests on {', '.join(ti['dropped'])}: without it the held-out gain is "
-                           f"{ti['gain_rest']:.3g} [{ti['ci_rest'][0]:.3g}, {ti['ci_rest'][1]:.3g}] "
-                           f"(a property of the joint helps in every {ti['by']})")
+                why.append(_invariance_reason(entry["task_invariance"]))
             if c.needs_exo and entry.get("passes_null") is False:
                 why.append("no better than the same term on future exo torque (assistive torque tracks the human torque)")
             entry["status"] = "rejected"
@@ -533,7 +645,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             e["conditional_gain"] = dict(given=[f"{a}:{flat.joints[b]}" for a, b in acc_effects], gain=g["gain"], ci=g["ci"])
             _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: gain {g['gain']:.3g} "
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
-            inv = _spread(cur_e - e_both, groups, group_kind, s)
+            inv = _spread(cur_e - e_both, groups, group_kind, s, neutral=_neutral(e["effect"]),
+                          by_group=lambda m, both=both, e=e, jj=jj: _param_by_group(both, flat, e["effect"], jj, held, m),
+                          sigma_g=sigma_g)
             e["conditional_gain"]["task_invariance"] = inv
             if _above_noise(g, sigma_r) and inv["passes"]:
                 e["heldout_gain"] = g["gain"]     # rank the rest by what they add
@@ -542,8 +656,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 pool.remove(e)
                 e["status"] = "rejected"
                 e["reason"] = ("adds nothing on held-out data once " + ", ".join(e["conditional_gain"]["given"]) +
-                               " is modelled" + ("" if inv["passes"] else
-                                                 f" (beyond {', '.join(inv.get('dropped', []))})"))
+                               " is modelled" + ("" if inv["passes"] else f" ({_invariance_reason(inv)})"))
 
     # 6. effects without a term
     for j in joint_ids:
