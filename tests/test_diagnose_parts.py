@@ -110,7 +110,9 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
     rng = np.random.default_rng(1)
     groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
     s = Settings(n_boot=200)
-    d = np.where(groups == "calisthenics", 3e-4, 2e-5) + 3e-3 * rng.standard_normal(groups.size)
+    noise = 3e-3 * rng.standard_normal(groups.size)
+    noise -= noise.mean()
+    d = np.where(groups == "calisthenics", 3e-4, 2e-5) + noise
     assert not _spread(d, groups, "task", s)["passes"]          # the gain path alone fails
     se = dict(walk=0.003, squat=0.006, calisthenics=0.005, rest=0.0026)
     agree = dict(walk=0.025, squat=0.036, calisthenics=0.029, rest=0.0275)
@@ -121,6 +123,9 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
     assert not res["passes"] and not res["consistent"] and res["heterogeneity"]["p"] < 0.05
     unidentified = dict(agree, rest=0.004)
     assert not _spread(d, groups, "task", s, by_group=_by_group(unidentified, se))["passes"]
+    # the rest's gain pointing the wrong way: θ agreeing is not enough
+    d_neg = np.where(groups == "calisthenics", 3e-4, -2e-5) + noise
+    assert not _spread(d_neg, groups, "task", s, by_group=_by_group(agree, se))["passes"]
     # a group made clearly worse: fails even with agreeing θ and a gain elsewhere
     d_hurt = np.where(groups == "walk", -2e-3, 1e-3) + 1e-4 * rng.standard_normal(groups.size)
     res = _spread(d_hurt, groups, "task", s, by_group=_by_group(agree, se), sigma_g=dict(walk=1e-4))
