@@ -27,13 +27,15 @@ statistic of the data at hand):
    misfit of the tasks the conservative model fits worst (unmodelled pelvis motion in jumps and
    calisthenics, for instance) helps there and nowhere else. The held-out gain is split by task (by trial
    where the data hold a single task) and the quarter of the groups (at least one) where it is largest is
-   set aside. The rest must still show a gain (CI above 0), or — the more sensitive test for a small effect
-   such as a 35 ms delay, whose gain on the other tasks cannot beat a refit's noise — identify the parameter
-   on their own (one Gauss-Newton step with HAC SE on their held-out residual) while every group's θ agrees
-   (Cochran's Q, p > 0.05) and the rest's mean gain is above 0. And no group may be made worse beyond its sampling and refit noise (Bonferroni
-   over the groups). Data with a single trial cannot be split: the report says so and the rule is skipped.
-   It applies to exo-driven terms too: a clean world's hip "delay" resting on jumps and calisthenics beat
-   its future-torque null; its tasks wanted 0.02 s (standing) to 0.11 s (calisthenics), Q's p = 3e-6.
+   set aside. The rest must still show a gain (CI above 0). Exo-driven terms, whose excitation (the exo
+   torque's rate) is task-dependent, may pass instead by the parameter: the rest identify it on their own
+   (one Gauss-Newton step with HAC SE on their held-out residual), every group's θ agrees (Cochran's Q,
+   p > 0.05) and the rest's mean gain is above 0 — the more sensitive test for a small effect such as a
+   35 ms delay, whose gain on the other tasks cannot beat a refit's noise. No group may be made worse
+   beyond its sampling and refit noise (Bonferroni over the groups). Data with a single trial cannot be
+   split: the report says so and the rule is skipped. The rule applies to exo-driven terms too: a clean
+   world's hip "delay" resting on jumps and calisthenics beat its future-torque null; its tasks wanted
+   0.02 s (standing) to 0.11 s (calisthenics), Q's p = 3e-6.
 6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap) on the same joint, when
    both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`.
 7. **Absorbable** effects (encoder offset, torque bias, payload) are reported as `absorbable` with their
@@ -327,7 +329,7 @@ def _held_groups(flat: Flat, held: torch.Tensor) -> tuple[np.ndarray, str]:
 
 
 def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=None, neutral: float = 0.0,
-            sigma_g: dict | None = None) -> dict:
+            sigma_g: dict | None = None, param_path: bool = True) -> dict:
     """Rule 5: the held-out gain per group, and whether the evidence holds beyond the groups where it is largest.
 
     The quarter of the groups (≥ 1) with the largest gain is set aside. The rule passes when the rest still
@@ -341,6 +343,13 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     tight). The rest's gain must still point the right way (mean above 0): where a flexible model already
     represents a stereotyped motion's pseudo-dissipation (walking) the parameter step agrees with anything
     while the gain, measured, stays at 0 or below (a clean world's hip "damping" of 0.6 N m s/rad).
+
+    `param_path=False` (the caller's choice for velocity-driven terms) reports θ per group but decides by
+    the gain alone: friction acts wherever the joint moves, so a real one shows a gain in walking as much
+    as in calisthenics, while an exo-driven term's excitation (the exo torque's rate) is task-dependent and
+    vanishes where the actuator saturates (DIAGNOSIS_PITFALLS.md). Measured: with the parameter path open
+    to damping, a hip pseudo-damping of 0.6 N m s/rad (unobserved pelvis motion) was accepted in two of
+    four worlds (strap, hip Coulomb).
 
     And a property of the joint makes no group worse: a group whose gain lies below 0 by more than its
     sampling and refit uncertainty (block-bootstrap SE and `sigma_g`, the twin refits' RMS difference on
@@ -381,7 +390,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
             out.update(theta_by_group={g: v for g, v in pg.items() if g != "rest"}, theta_rest=rest["estimate"],
                        theta_rest_ci=[lo, hi], heterogeneity=dict(Q=Q, df=len(th) - 1, p=p_het),
                        consistent=consistent)
-            if consistent and not out["passes"] and b["mean"] > 0:
+            if param_path and consistent and not out["passes"] and b["mean"] > 0:
                 out["passes"] = True
                 out["note"] = (f"without {', '.join(top)} the held-out gain is not significant, but the other "
                                f"{kind}s identify the parameter on their own and every {kind} agrees with it")
@@ -535,7 +544,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             entry["task_invariance"] = _spread(
                 e_ref - e, groups, group_kind, s, neutral=_neutral(effect),
                 by_group=lambda m, ext=ext, effect=effect, j=j: _param_by_group(ext, flat, effect, j, held, m),
-                sigma_g=sigma_g)
+                sigma_g=sigma_g, param_path=c.needs_exo)
             # Every term, exo-driven ones included: exempting those (their evidence sits where the exo torque
             # changes fast, and rule 3 guards them) let a clean world's hip "delay" through, its gain resting on
             # jump_in_place and calisthenics with the future-torque null beaten (measured, pipeline world).
@@ -649,7 +658,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
             inv = _spread(cur_e - e_both, groups, group_kind, s, neutral=_neutral(e["effect"]),
                           by_group=lambda m, both=both, e=e, jj=jj: _param_by_group(both, flat, e["effect"], jj, held, m),
-                          sigma_g=sigma_g)
+                          sigma_g=sigma_g, param_path=LIBRARY[e["effect"]].needs_exo)
             e["conditional_gain"]["task_invariance"] = inv
             if _above_noise(g, sigma_r) and inv["passes"]:
                 e["heldout_gain"] = g["gain"]     # rank the rest by what they add
