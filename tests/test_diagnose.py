@@ -202,3 +202,15 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
 @pytest.mark.parametrize("case", ["knee_damping", "hip_coulomb", "exo_delay", "strap", "encoder_offset", "clean"])
 def test_hidden_effect_worlds(tmp_path, case):
     _check_world(tmp_path, case, **WORLD_SETTINGS)
+
+
+def test_real_recordings_without_exoskeleton(tmp_path, real_data):
+    """Real human recordings (OpenSim inverse dynamics, 15 tasks, nobody wore an exoskeleton): the diagnosis
+    runs end to end on them; every exo-driven term is reported as not testable; nothing else is accepted —
+    a leg's biological joints carry no friction, delay or strap that a leg model could name."""
+    rep = diagnose(real_data, out=tmp_path / "diag", quick=True, verbose=False, **WORLD_SETTINGS)
+    assert rep["findings"] == [], rep["findings"]
+    exo = [e for e in rep["rejected"] if e["effect"] in ("actuation_delay", "torque_gain", "strap_compliance")]
+    assert exo and all("not testable" in e["reason"] for e in exo)
+    assert rep["baseline"]["torque_mse"] > 0 and rep["data"]["has_exo"] is False
+    assert (tmp_path / "diag" / "diagnosis.md").read_text().startswith("# Diagnosis")
