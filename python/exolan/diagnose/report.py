@@ -168,7 +168,10 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
    one; trials where the data hold one task) where it is largest must still have a CI above 0 — a term that
-   only soaks up the misfit of the worst-fitted tasks is rejected;
+   only soaks up the misfit of the worst-fitted tasks is rejected. Exo-driven terms, whose excitation depends
+   on the task, may instead show that the other tasks identify the parameter on their own (Gauss-Newton step,
+   HAC SE) and that every task's θ agrees (Cochran's Q, p > 0.05), with a mean gain above 0 there. No task
+   may be made worse beyond its sampling and refit noise (Bonferroni over the tasks);
 6. confusable rivals on the same joint that held-out data cannot separate are `ambiguous`; a further term must
    add held-out gain beyond the noise floor on top of the already accepted ones (forward selection);
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
@@ -225,6 +228,13 @@ def _evidence_lines(f: dict) -> list[str]:
         rest = (f"; without {', '.join(ti['dropped'])}: {_fmt(ti['gain_rest'], 3)} CI {_fmt(ti['ci_rest'], 3)}"
                 if ti.get("dropped") else f" ({ti['note']})" if ti.get("note") else "")
         out.append(f"  - gain by {ti['by']}: {per}{rest}")
+    if ti.get("theta_by_group"):
+        th = ", ".join(f"{g} {_fmt(v['estimate'], 3)} ± {_fmt(v['se'], 2)}" for g, v in ti["theta_by_group"].items())
+        het = ti.get("heterogeneity") or {}
+        out.append(f"  - parameter by {ti['by']} (one Gauss-Newton step on its held-out samples, HAC SE): {th}; "
+                   f"Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}")
+    if ti.get("note") and ti.get("dropped"):
+        out.append(f"  - {ti['note']}")
     sg = f.get("subject_gains") or {}
     if sg:
         out.append("  - gain by subject: " + ", ".join(f"{k} {_fmt(v['gain'], 3)} {_fmt(v['ci'], 3)}" for k, v in sg.items()))
