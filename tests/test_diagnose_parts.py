@@ -40,12 +40,41 @@ def test_other_leg_load_is_paired_by_recording_and_normalised_by_weight():
     T = len(trials[0].q)
     np.testing.assert_allclose(flat.f_o[:T].numpy(), trials[1].f_v / (70.0 * 9.81), rtol=1e-5)
     np.testing.assert_allclose(flat.f_o[T:].numpy(), trials[0].f_v / (70.0 * 9.81), rtol=1e-5)
-    assert flat.forces(torch.arange(5)).shape == (5, 2)
+    assert flat.forces(torch.arange(5)).shape == (5, 5)     # f_v, f_o, the other hip's q, q̇, q̈
+    np.testing.assert_allclose(flat.kin_o[:T, 1].numpy(), trials[1].qd[:, 0], rtol=1e-5)
     base = make_base(flat, hidden=8)
     assert base.body_load is not None and base.lim is not None
     # a single side has no partner: the base gets no load term
     single = prepare(trials[:1])
     assert not single.has_partner and make_base(single, hidden=8).body_load is None
+
+
+def test_pelvis_tilt_is_a_coordinate_shift_by_the_other_hip():
+    """The optional tilt term: zero leaves the model unchanged; non-zero evaluates the Lagrangian at
+    q − τ_t q_o e₀ (and rates), so forward dynamics inverts inverse dynamics and the shift reaches q̈."""
+    flat = prepare(_leg_pair())
+    torch.manual_seed(0)
+    plain = make_base(flat, hidden=8, seed=2)
+    tilted = make_base(flat, hidden=8, seed=2, pelvis_tilt=True)
+    tilted.load_state_dict(plain.state_dict(), strict=False)
+    b = torch.arange(0, 40)
+    z = plain.z_of(flat.trial[b])
+    args = (flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b))
+    with torch.no_grad():
+        assert torch.allclose(plain.inverse(*args), tilted.inverse(*args))
+        tilted.tilt.fill_(0.3)
+        tau = tilted.inverse(*args)
+        assert not torch.allclose(tau, plain.inverse(*args))
+        qdd = tilted.forward_dynamics(flat.q[b], flat.qd[b], tau, z, flat.forces(b))
+        torch.testing.assert_close(qdd, flat.qdd[b], rtol=1e-3, atol=1e-3)
+        # the same as the plain model at shifted coordinates (the LIM and load term see the measured q)
+        sh = 0.3 * flat.kin_o[b]
+        e0 = torch.tensor([1.0, 0.0])
+        q_a, qd_a, qdd_a = (flat.q[b] - sh[:, :1] * e0, flat.qd[b] - sh[:, 1:2] * e0, flat.qdd[b] - sh[:, 2:3] * e0)
+        H, c, g = plain.delan.terms(q_a, qd_a, z)
+        g = g * (1.0 + plain.body_load * flat.f_o[b, None])
+        expect = (H @ qdd_a.unsqueeze(-1)).squeeze(-1) + c + g - plain.lim.contact_torque(flat.q[b], z, flat.f_v[b])
+        torch.testing.assert_close(tau, expect, rtol=1e-4, atol=1e-4)
 
 
 def test_forward_error_is_inertia_inverse_of_torque_error():

@@ -94,6 +94,7 @@ class Settings:
     effects: tuple = FITTED     # which candidate effects to fit (all by default)
     joints: tuple | None = None  # restrict to these joint names (None: all)
     max_delay: float = 0.1
+    pelvis_tilt: bool = False   # base term: the pelvis tilts with the other hip (fit.py docstring; measured there)
     verbose: bool = True
 
 
@@ -463,7 +464,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     # 1. base model (slow context), then the reference refit and its twin for the noise floor
     t0 = time.time()
     if model is None:
-        base = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
+        base = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt)
         train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
         base_source = (f"trained here: slow-context DeLaN{' + LIM' if flat.has_insole else ''}"
                        f"{' + gravity scaled by the other leg load' if base.body_load is not None else ''}, "
@@ -697,7 +698,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # start keeps what the base already absorbed of the effect (a conservative model with a free
             # contact term mimics part of any dissipation along stereotyped motion), which biases the
             # estimate low. Same budget as the reference (base steps + refit steps).
-            fresh = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
+            fresh = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt)
             ext_model = ExtendedModel(fresh, flat.n, effs, dt=flat.dt, max_delay=s.max_delay, init=init,
                                       coupled_damping=False)
             train(ext_model, flat, s.steps_base, lr=s.lr_base, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
