@@ -225,7 +225,8 @@ class SlowContextDeLaN(nn.Module):
         return (f_v[..., 0], f_v[..., 1]) if f_v.dim() == q.dim() else (f_v, None)
 
     def _tilt_shift(self, q, f_v):
-        """(Δq, Δq̇, Δq̈) of the pelvis tilt that follows the other hip (zeros without the term)."""
+        """(Δq, Δq̇, Δq̈) of the pelvis tilt that follows the other hip; None without the term or a partner.
+        (The fits' acceleration term `inertia_of` takes H at the measured q: the shift only moves its weights.)"""
         if self.tilt is None or f_v.dim() != q.dim() or f_v.shape[-1] < 5:
             return None
         e0 = torch.zeros(q.shape[-1], dtype=q.dtype); e0[0] = 1.0
