@@ -295,14 +295,12 @@ def _identifiable(effect: str, pci: dict, max_delay: float = float("inf")) -> bo
     lo, hi = pci["ci"]
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return False
-    c = LIBRARY[effect]
     if effect == "actuation_delay" and hi >= 0.95 * max_delay:
         return False
-    if effect == "strap_compliance":
-        return lo > 0.0          # compliance CI excludes 0 ⇔ stiffness CI excludes ∞
-    if c.positive:
-        return lo > c.neutral
-    return not (lo <= c.neutral <= hi)
+    neutral = _neutral(effect)   # strap: compliance CI excludes 0 ⇔ stiffness CI excludes ∞
+    if LIBRARY[effect].positive:
+        return lo > neutral
+    return not (lo <= neutral <= hi)
 
 
 def _gain(e_ref: np.ndarray, e_new: np.ndarray, s: Settings, seed: int = 0) -> dict:
@@ -379,10 +377,11 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     out.update(dropped=top, gain_rest=b["mean"], ci_rest=b["ci"], passes=bool(b["ci"][0] > 0))
     if by_group is not None:
         pg = by_group({"rest": ~in_top, **{str(g): groups == g for g in labels}})
-        if "rest" in pg and len([g for g in labels if str(g) in pg]) >= 2:
+        have = [str(g) for g in labels if str(g) in pg]
+        if "rest" in pg and len(have) >= 2:
             rest = pg["rest"]
-            th = np.array([pg[str(g)]["estimate"] for g in labels if str(g) in pg])
-            w = 1.0 / np.square([pg[str(g)]["se"] for g in labels if str(g) in pg])
+            th = np.array([pg[g]["estimate"] for g in have])
+            w = 1.0 / np.square([pg[g]["se"] for g in have])
             Q = float(np.sum(w * (th - np.sum(w * th) / np.sum(w)) ** 2))
             p_het = float(scipy_stats.chi2.sf(Q, len(th) - 1))
             lo, hi = rest["estimate"] - 1.96 * rest["se"], rest["estimate"] + 1.96 * rest["se"]
