@@ -168,3 +168,24 @@ def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):
     held = arm.index("held")
     g, kind = _held_groups(arm, held)
     assert kind == "trial" and len(set(g)) == 2
+
+
+def test_fit_weights_follow_the_inverse_misfit_of_each_trial_and_joint(arm):
+    """Weighted least squares (fit.misfit_weights): a trial whose residual variance is 100x the others' gets
+    about 1/50 of their weight (halfway shrinkage to the median); joints are weighted separately; with a
+    single trial everything stays 1; the weights the fits use average 1 over each joint's training rows."""
+    from exolan.diagnose.fit import misfit_weights, trial_weights
+
+    rng = np.random.default_rng(0)
+    trial = np.repeat(np.arange(3), 2000)
+    r = rng.standard_normal((6000, 2))
+    r[trial == 1, 0] *= 10.0                     # trial 1: hip misfit 10x (variance 100x); knee as the others
+    w = trial_weights(r, trial, 3)
+    assert w[1, 0] / w[0, 0] == pytest.approx(1 / 50.5, rel=0.1)
+    assert w[1, 1] / w[0, 1] == pytest.approx(1.0, rel=0.1)
+    np.testing.assert_array_equal(trial_weights(r[:2000], trial[:2000], 3), np.ones((3, 2)))
+    base = make_base(arm, hidden=8, seed=0)
+    wf = misfit_weights(base, arm)
+    tr = arm.index("train")
+    assert wf.shape == arm.tau.shape and torch.all(wf > 0)
+    np.testing.assert_allclose(wf[tr].mean(0).numpy(), 1.0, rtol=1e-4)
