@@ -183,12 +183,13 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     assert r.returncode == 0, r.stderr
     out = tmp_path / "diag"
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "diagnose", str(root), "--model", str(run), "--out",
-                        str(out), "--quick", "--effects", "viscous_damping,coulomb_friction,encoder_offset"],
+                        str(out), "--quick", "--effects", "viscous_damping,coulomb_friction,encoder_offset",
+                        "--unweighted"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "report:" in r.stdout
     j = json.loads((out / "diagnosis.json").read_text())
-    assert j["baseline"]["source"].startswith("given model")
+    assert j["baseline"]["source"].startswith("given model") and j["settings"]["weighted"] is False
     tested = {(e["effect"], e["joint"]) for e in j["findings"] + j["rejected"]}
     assert {("viscous_damping", "hip"), ("coulomb_friction", "knee"), ("encoder_offset", "hip")} <= tested
     assert not any(e["effect"] == "actuation_delay" for e in j["findings"] + j["rejected"])

@@ -115,6 +115,10 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--effects", default=None, help="comma-separated candidate effects to test (default: all)")
     p.add_argument("--joints", default=None, help="comma-separated joint names to test (default: all)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--unweighted", action="store_true",
+                   help="refit without the per-trial misfit weights (ordinary least squares; see exolan.diagnose.fit)")
+    p.add_argument("--pelvis-tilt", action="store_true",
+                   help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
 
     p = sub.add_parser("pipeline", help="the main job: simulate, train, evaluate, export, rollout, diagnose, report")
     p.add_argument("--out", default="out/main")

@@ -109,6 +109,10 @@ def cli_diagnose(args) -> int:
         settings["joints"] = tuple(j.strip() for j in args.joints.split(",") if j.strip())
     if getattr(args, "seed", None) is not None:
         settings["seed"] = args.seed
+    if getattr(args, "unweighted", False):
+        settings["weighted"] = False
+    if getattr(args, "pelvis_tilt", False):
+        settings["pelvis_tilt"] = True
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:

@@ -160,7 +160,10 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    minibatches as a reference refit of the base model alone); its held-out gain (paired, per sample) must have
    a circular-block-bootstrap 95% CI (block length from the ACF) above 0, **and** gain − 1.96 √(SE² + σ_r²) > 0,
    where σ_r is the refit noise (RMS held-out difference between the reference and twin refits that differ
-   only in minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small);
+   only in minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small).
+   Every refit is a weighted least-squares fit, each trial and joint weighted by the base model's inverse
+   misfit there, so that the tasks the model fits worst do not pull a joint's parameter; the gains are not
+   weighted (they are the torque error you see);
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual): the future exo torque
    cannot act now but shares the assistive controller's correlation with the human torque;
