@@ -157,11 +157,27 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
     assert not _spread(d_neg, groups, "task", s, by_group=_by_group(agree, se))["passes"]
     # a group made clearly worse: fails even with agreeing θ and a gain elsewhere
     d_hurt = np.where(groups == "walk", -2e-3, 1e-3) + 1e-4 * rng.standard_normal(groups.size)
-    res = _spread(d_hurt, groups, "task", s, by_group=_by_group(agree, se), sigma_g=dict(walk=1e-4))
+    twin = [np.where(groups == "walk", 1e-4, 0.0)]          # a twin refit's held-out difference per sample
+    res = _spread(d_hurt, groups, "task", s, by_group=_by_group(agree, se), twins=twin)
     assert res["hurt"] == ["walk"] and not res["passes"]
     # ... but not when that group's refit noise is as large as the loss
-    res = _spread(d_hurt, groups, "task", s, sigma_g=dict(walk=2e-3))
+    res = _spread(d_hurt, groups, "task", s, twins=[np.where(groups == "walk", 2e-3, 0.0)])
     assert res["hurt"] == []
+
+
+def test_task_invariance_gain_path_counts_the_refit_noise_of_the_rest():
+    """A rest gain whose bootstrap CI is above 0 but which a refit with another minibatch order changes as
+    much does not pass the gain path (as rule 2 for the whole gain)."""
+    rng = np.random.default_rng(2)
+    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
+    s = Settings(n_boot=200)
+    noise = 2e-4 * rng.standard_normal(groups.size)
+    noise -= noise.mean()
+    d = np.where(groups == "calisthenics", 3e-4, 3e-5) + noise
+    quiet = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3)
+    assert quiet["passes"] and quiet["ci_rest"][0] > 0
+    noisy = _spread(d, groups, "task", s, twins=[np.full(groups.size, 3e-5), np.full(groups.size, -3e-5)])
+    assert not noisy["passes"] and noisy["ci_rest"][0] > 0 and noisy["refit_sd_rest"] == pytest.approx(3e-5)
 
 
 def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):
