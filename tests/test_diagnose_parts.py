@@ -178,6 +178,15 @@ def test_task_invariance_gain_path_counts_the_refit_noise_of_the_rest():
     assert quiet["passes"] and quiet["ci_rest"][0] > 0
     noisy = _spread(d, groups, "task", s, twins=[np.full(groups.size, 3e-5), np.full(groups.size, -3e-5)])
     assert not noisy["passes"] and noisy["ci_rest"][0] > 0 and noisy["refit_sd_rest"] == pytest.approx(3e-5)
+    # a quiet rest gain whose θ the rest do not identify on their own does not pass either
+    se = dict(walk=0.16, squat=0.36, calisthenics=0.08, rest=0.15)
+    vague = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3,
+                    by_group=_by_group(dict(walk=0.08, squat=0.28, calisthenics=0.42, rest=0.11), se))
+    assert not vague["passes"] and not vague["rest_identifies"]
+    sharp = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3,
+                    by_group=_by_group(dict(walk=0.41, squat=0.5, calisthenics=0.48, rest=0.42),
+                                       dict(walk=0.04, squat=0.3, calisthenics=0.045, rest=0.04)))
+    assert sharp["passes"] and sharp["rest_identifies"]
 
 
 def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):
