@@ -214,3 +214,29 @@ def test_fit_weights_follow_the_inverse_misfit_of_each_trial_and_joint(arm):
     tr = arm.index("train")
     assert wf.shape == arm.tau.shape and torch.all(wf > 0)
     np.testing.assert_allclose(wf[tr].mean(0).numpy(), 1.0, rtol=1e-4)
+
+
+def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
+    """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
+    the further term is refitted with the accepted one from scratch, the report carries that comparison, and
+    the extended model is the cached from-scratch fit of the final set (no third fit)."""
+    import exolan.diagnose.procedure as P
+    from exolan.diagnose import diagnose
+    from exolan.diagnose.synthetic import linear_drive
+
+    monkeypatch.setattr(P, "_above_noise", lambda g, sigma: True)
+    spread = P._spread
+
+    def open_spread(*a, **k):
+        return dict(spread(*a, **k), passes=True)
+
+    monkeypatch.setattr(P, "_spread", open_spread)
+    fits = []
+    fresh = P._fresh_fit
+    monkeypatch.setattr(P, "_fresh_fit", lambda *a, **k: fits.append(a[2]) or fresh(*a, **k))
+    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
+    rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
+                   effects=("viscous_damping", "coulomb_friction"), verbose=False)
+    second = [e for e in rep["findings"] if "conditional_gain" in e]
+    assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
+    assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
