@@ -57,8 +57,8 @@ The joint fit gives the reported estimates; their CIs include the spread to the 
 model's held-out torque MSE and rollout errors are compared with the reference's, paired, with
 block-bootstrap CIs.
 
-Every refit (reference, twins, candidates, nulls, the extended model) is a weighted least-squares fit: each
-trial and joint is weighted by the base model's inverse mean squared training residual there
+Every refit (reference, twins, candidates, nulls, the extended model's last steps) is weighted least
+squares: each trial and joint is weighted by the base model's inverse mean squared training residual there
 (`fit.misfit_weights`, shrunk halfway to the median). A task the conservative model cannot fit (unmeasured
 pelvis motion in calisthenics: ten times walking's residual variance) then cannot pull a joint's parameter
 towards its own misfit — a planted hip Coulomb friction of 2.5 N m came out 3.00 unweighted and 2.48
