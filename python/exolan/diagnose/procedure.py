@@ -549,6 +549,12 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             f"({len(deltas)} twin refits)")
 
     groups, group_kind = _held_groups(flat, held)
+
+    def invariance(d, fitted_model, effect, j):
+        """Rule 5 for the held-out gain series d of (effect, joint j) as `fitted_model` carries it."""
+        return _spread(d, groups, group_kind, s, neutral=_neutral(effect),
+                       by_group=lambda masks: _param_by_group(fitted_model, flat, effect, j, held, masks),
+                       twins=twin_d, param_path=LIBRARY[effect].needs_exo)
     held_subject = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[held].numpy()])
     starts = R.rollout_starts(flat, s.horizon, seed=s.seed)
     baseline, ro_base = _metrics(ref, flat, s, starts)
@@ -598,10 +604,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 entry["vs"] = float(ext.stribeck()[1][j].detach())
             entry["passes_gain"] = bool(g["ci"][0] > 0)
             entry["passes_floor"] = _above_noise(g, sigma_r)
-            entry["task_invariance"] = _spread(
-                e_ref - e, groups, group_kind, s, neutral=_neutral(effect),
-                by_group=lambda m, ext=ext, effect=effect, j=j: _param_by_group(ext, flat, effect, j, held, m),
-                twins=twin_d, param_path=c.needs_exo)
+            entry["task_invariance"] = invariance(e_ref - e, ext, effect, j)
             # Every term, exo-driven ones included: exempting those (their evidence sits where the exo torque
             # changes fast, and rule 3 guards them) let a clean world's hip "delay" through, its gain resting on
             # jump_in_place and calisthenics with the future-torque null beaten (measured, pipeline world).
@@ -714,9 +717,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             e["conditional_gain"] = dict(given=[f"{a}:{flat.joints[b]}" for a, b in acc_effects], gain=g["gain"], ci=g["ci"])
             _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: gain {g['gain']:.3g} "
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
-            inv = _spread(cur_e - e_both, groups, group_kind, s, neutral=_neutral(e["effect"]),
-                          by_group=lambda m, both=both, e=e, jj=jj: _param_by_group(both, flat, e["effect"], jj, held, m),
-                          twins=twin_d, param_path=LIBRARY[e["effect"]].needs_exo)
+            inv = invariance(cur_e - e_both, both, e["effect"], jj)
             e["conditional_gain"]["task_invariance"] = inv
             passes = _above_noise(g, sigma_r) and inv["passes"]
             if passes and model is None:
@@ -731,9 +732,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 both_f = fresh_fits[k_both]
                 e_both_f = sq_errors(both_f, flat, held).sum(1)
                 gf = _gain(e_cur_f, e_both_f, s)
-                invf = _spread(e_cur_f - e_both_f, groups, group_kind, s, neutral=_neutral(e["effect"]),
-                               by_group=lambda m, both_f=both_f, e=e, jj=jj: _param_by_group(both_f, flat, e["effect"], jj, held, m),
-                               twins=twin_d, param_path=LIBRARY[e["effect"]].needs_exo)
+                invf = invariance(e_cur_f - e_both_f, both_f, e["effect"], jj)
                 e["conditional_gain"]["from_scratch"] = dict(gain=gf["gain"], ci=gf["ci"], task_invariance=invf)
                 _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}, both fitted from "
                         f"scratch: gain {gf['gain']:.3g} [{gf['ci'][0]:.3g}, {gf['ci'][1]:.3g}]")
