@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from exolan.diagnose import stats
 from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, train
 from exolan.diagnose.procedure import Settings, _held_groups, _spread
 from exolan.diagnose.synthetic import two_link
@@ -187,6 +188,37 @@ def test_task_invariance_gain_path_counts_the_refit_noise_of_the_rest():
                     by_group=_by_group(dict(walk=0.41, squat=0.5, calisthenics=0.48, rest=0.42),
                                        dict(walk=0.04, squat=0.3, calisthenics=0.045, rest=0.04)))
     assert sharp["passes"] and sharp["rest_identifies"]
+
+
+def test_task_invariance_rest_gain_weights_each_task_by_its_precision():
+    """The rest's gain combines the tasks' gains with inverse-variance weights: a quiet task with a clear gain
+    is not drowned by a noisy one (the pooled mean's CI would reach 0), and a noisy task's large mean does
+    not carry a quiet task that shows nothing."""
+    rng = np.random.default_rng(4)
+    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
+    s = Settings(n_boot=400)
+    sigma = dict(walk=2.7e-3, squat=1.6e-2, calisthenics=5e-3)
+
+    def series(means):
+        d = np.empty(groups.size)
+        for g, m in means.items():
+            e = sigma[g] * rng.standard_normal(3000)
+            d[groups == g] = m + e - e.mean()
+        return d
+
+    def pooled_passes(d):         # the former rule: the rest's samples pooled, one bootstrap
+        b = stats.bootstrap_mean(d[groups != "calisthenics"], n_boot=400, seed=0)
+        return b["ci"][0] > 0 and b["mean"] - 1.96 * b["se"] > 0
+
+    d = series(dict(walk=1.6e-4, squat=4e-4, calisthenics=3.6e-3))
+    quiet_gain = _spread(d, groups, "task", s)
+    assert quiet_gain["dropped"] == ["calisthenics"]
+    assert quiet_gain["passes"] and quiet_gain["rest_weights"]["walk"] > 0.9
+    assert quiet_gain["gain_rest"] == pytest.approx(1.6e-4, rel=0.15)
+    assert not pooled_passes(d)
+    d = series(dict(walk=0.0, squat=6e-4, calisthenics=3.6e-3))
+    noisy_gain = _spread(d, groups, "task", s)
+    assert not noisy_gain["passes"] and pooled_passes(d)
 
 
 def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):

@@ -170,8 +170,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
-   one; trials where the data hold one task) where it is largest must still be above 0 beyond its sampling and
-   refit noise, and those tasks must identify the parameter on their own — a term that only soaks up the
+   one; trials where the data hold one task) where it is largest — the other tasks' gains combined with
+   inverse-variance weights, so that the noisiest task does not decide — must still be above 0 beyond its
+   sampling and refit noise, and those tasks must identify the parameter on their own — a term that only soaks up the
    misfit of the worst-fitted tasks is rejected. Exo-driven terms, whose excitation depends
    on the task, may instead show that the other tasks identify the parameter on their own (Gauss-Newton step,
    HAC SE) and that every task's θ agrees (Cochran's Q, p > 0.05), with a mean gain above 0 there. No task
@@ -230,7 +231,8 @@ def _evidence_lines(f: dict) -> list[str]:
     ti = f.get("task_invariance") or {}
     if ti.get("groups"):
         per = ", ".join(f"{g} {_fmt(v, 3)}" for g, v in sorted(ti["groups"].items(), key=lambda kv: -kv[1]))
-        rest = (f"; without {', '.join(ti['dropped'])}: {_fmt(ti['gain_rest'], 3)} CI {_fmt(ti['ci_rest'], 3)}"
+        rest = (f"; without {', '.join(ti['dropped'])} (the others precision-weighted): {_fmt(ti['gain_rest'], 3)} "
+                f"CI {_fmt(ti['ci_rest'], 3)}"
                 if ti.get("dropped") else f" ({ti['note']})" if ti.get("note") else "")
         out.append(f"  - gain by {ti['by']}: {per}{rest}")
     if ti.get("theta_by_group"):
