@@ -92,6 +92,25 @@ def test_linear_drive_viscous_friction_layout2(tmp_path, viscous):
     assert all(e["status"] in ("rejected", "absorbable", "ambiguous") for e in j["rejected"])
 
 
+def test_linear_drive_viscous_and_coulomb_friction_both_found(tmp_path):
+    """Two effects on one axis (random magnitudes and seed): forward selection accepts the larger one, then
+    the other on top of it, each within 20 %. The second term starts where the residual of the first model
+    asks for it (a start at its single-term estimate, which had soaked up part of the first, lost: measured)."""
+    rng = np.random.default_rng()
+    seed = int(rng.integers(1000))
+    b, fc = float(rng.uniform(4.0, 12.0)), float(rng.uniform(2.0, 5.0))      # N s/m, N
+    trials, truth = linear_drive(n_trials=3, seconds=16.0, seed=seed, viscous=b, coulomb=fc)
+    rep = diagnose(trials, out=tmp_path, quick=True, hidden=16, steps_base=500, steps_refit=200,
+                   effects=("viscous_damping", "coulomb_friction", "torque_bias"), verbose=False)
+    msg = f"seed {seed}, b {b}, Fc {fc}: findings {rep['findings']}"
+    assert sorted(_accepted(rep)) == [("coulomb_friction", "x"), ("viscous_damping", "x")], msg
+    est = {f["effect"]: f["estimate"] for f in rep["findings"]}
+    assert abs(est["viscous_damping"] - b) <= 0.2 * b, msg
+    assert abs(est["coulomb_friction"] - fc) <= 0.2 * fc, msg
+    second = next(f for f in rep["findings"] if "conditional_gain" in f)
+    assert second["conditional_gain"]["gain"] > 0 and "start" in second["conditional_gain"], msg
+
+
 # -- hidden-effect worlds ---------------------------------------------------------------------------
 
 # (effect, joint, value range, accepted-effect check)

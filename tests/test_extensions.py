@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from exolan.diagnose.fit import SlowContextDeLaN
 from exolan.extensions import ExtendedModel, lag_table
@@ -92,6 +93,20 @@ def test_friction_terms_have_the_world_signs():
     assert ext.estimate("viscous_damping", 0) == pytest.approx(1.5, rel=1e-6)
     assert ext.estimate("coulomb_friction", 1) == pytest.approx(2.0, rel=1e-6)
     assert ext.coulomb()[0] == 0 and ext.damping_matrix()[1, 1] == 0   # inactive joints untouched
+
+
+def test_warm_start_per_joint():
+    """`init` takes a number for every joint or {joint: number}: two damped joints keep their own starts,
+    joints left out of the mapping keep the default."""
+    ext = ExtendedModel(_base(), 2, [("viscous_damping", 0), ("viscous_damping", 1), ("coulomb_friction", 1),
+                                     ("actuation_delay", 1)], dt=0.005,
+                        init={"viscous_damping": {0: 0.4, 1: 1.7}, "coulomb_friction": {1: 2.5},
+                              "actuation_delay": {1: 0.03}})
+    assert ext.estimate("viscous_damping", 0) == pytest.approx(0.4, rel=1e-6)
+    assert ext.estimate("viscous_damping", 1) == pytest.approx(1.7, rel=1e-6)
+    assert ext.estimate("coulomb_friction", 1) == pytest.approx(2.5, rel=1e-6)
+    assert ext.estimate("actuation_delay", 1) == pytest.approx(0.03, rel=1e-6)
+    assert float(F.softplus(ext.coulomb_raw[0].detach())) == pytest.approx(0.05, rel=1e-6)   # the default, not 2.5
 
 
 def test_fractional_delay_is_linear_interpolation_of_the_history():

@@ -127,24 +127,29 @@ class ExtendedModel(nn.Module):
         for eff in EFFECTS_MODELLED:
             self.register_buffer(f"mask_{eff}", mask(eff))
         # Raw (unconstrained) parameters. Initial values are small but not zero so that gradients of
-        # softplus-squared terms do not vanish; `init` (physical units) overrides them for warm starts.
+        # softplus-squared terms do not vanish; `init` (physical units) overrides them for warm starts: a
+        # number for every joint, or {joint index: number} per joint (the others keep the default).
+        def start(eff, default, raw):
+            v = init.get(eff, default)
+            vals = [v.get(j, v.get(str(j), default)) for j in range(n)] if isinstance(v, dict) else [v] * n
+            return nn.Parameter(torch.tensor([float(raw(float(x))) for x in vals], dtype=dtype))
+
         sp = _inv_softplus
-        d0 = init.get("viscous_damping", 0.05)
-        self.damping_diag = nn.Parameter(torch.full((n,), sp(math.sqrt(d0)), dtype=dtype))
+        self.damping_diag = start("viscous_damping", 0.05, lambda d: sp(math.sqrt(d)))
         self.damping_off = nn.Parameter(torch.zeros(n, n, dtype=dtype))
-        self.coulomb_raw = nn.Parameter(torch.full((n,), sp(init.get("coulomb_friction", 0.05)), dtype=dtype))
-        self.stribeck_fs_raw = nn.Parameter(torch.full((n,), sp(init.get("stribeck_friction", 0.05)), dtype=dtype))
-        self.stribeck_vs_raw = nn.Parameter(torch.full((n,), sp(init.get("stribeck_vs", 0.1)), dtype=dtype))
+        self.coulomb_raw = start("coulomb_friction", 0.05, sp)
+        self.stribeck_fs_raw = start("stribeck_friction", 0.05, sp)
+        self.stribeck_vs_raw = start("stribeck_vs", 0.1, sp)
         # delay in samples, as a fraction of the maximum through a sigmoid: bounded on both sides
-        frac0 = min(max(init.get("actuation_delay", self.dt) / self.max_delay, 1e-3), 1 - 1e-3)
-        self.delay_raw = nn.Parameter(torch.full((n,), math.log(frac0 / (1 - frac0)), dtype=dtype))
-        self.offset_raw = nn.Parameter(torch.full((n,), init.get("encoder_offset", 0.0) / 0.01, dtype=dtype))
-        self.bias_raw = nn.Parameter(torch.full((n,), float(init.get("torque_bias", 0.0)), dtype=dtype))
-        k0 = float(init.get("torque_gain", 1.0))
-        self.gain_raw = nn.Parameter(torch.full((n,), (1.0 - 1.0 / k0) / 0.1, dtype=dtype))
+        def logit_delay(d):
+            frac = min(max(d / self.max_delay, 1e-3), 1 - 1e-3)
+            return math.log(frac / (1 - frac))
+        self.delay_raw = start("actuation_delay", self.dt, logit_delay)
+        self.offset_raw = start("encoder_offset", 0.0, lambda o: o / 0.01)
+        self.bias_raw = start("torque_bias", 0.0, lambda b: b)
+        self.gain_raw = start("torque_gain", 1.0, lambda k: (1.0 - 1.0 / k) / 0.1)
         # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
-        c0 = 1.0 / float(init.get("strap_compliance", 1000.0))
-        self.compliance_raw = nn.Parameter(torch.full((n,), sp(max(c0 / 0.01, 1e-4)), dtype=dtype))
+        self.compliance_raw = start("strap_compliance", 1000.0, lambda k: sp(max(1.0 / k / 0.01, 1e-4)))
 
     # -- physical parameters -----------------------------------------------------------------------
     def damping_matrix(self) -> torch.Tensor:

@@ -80,8 +80,9 @@ def two_link(n_trials=4, seconds=20.0, dt=0.005, seed=0, damping=None, coulomb=N
     return trials, effects
 
 
-def linear_drive(n_trials=3, seconds=20.0, dt=0.005, seed=0, mass=3.0, incline=0.3, viscous=None, noise=0.2):
-    """A carriage on an inclined rail (prismatic joint x, metres, force in N); viscous: N s/m."""
+def linear_drive(n_trials=3, seconds=20.0, dt=0.005, seed=0, mass=3.0, incline=0.3, viscous=None, coulomb=None,
+                 noise=0.2):
+    """A carriage on an inclined rail (prismatic joint x, metres, force in N); viscous: N s/m; coulomb: N."""
     rng = np.random.default_rng(seed)
     T = int(seconds / dt)
     trials = []
@@ -90,7 +91,11 @@ def linear_drive(n_trials=3, seconds=20.0, dt=0.005, seed=0, mass=3.0, incline=0
         tau = mass * qdd + mass * G * np.sin(incline)
         if viscous is not None:
             tau = tau + viscous * qd
+        if coulomb is not None:
+            tau = tau + coulomb * np.tanh(qd / 0.01)
         tau = tau + noise * rng.standard_normal(tau.shape)
         trials.append(_trial(f"drive_{i}", dt, ("x",), ("prismatic",), q, qd, qdd, tau))
     effects = [{"effect": "viscous_damping", "joint": "x", "value": viscous}] if viscous is not None else []
+    if coulomb is not None:
+        effects.append({"effect": "coulomb_friction", "joint": "x", "value": coulomb})
     return trials, effects
