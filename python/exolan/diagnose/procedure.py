@@ -403,7 +403,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     z = float(scipy_stats.norm.ppf(1 - 0.025 / len(labels)))
     for g in labels:
         b = stats.bootstrap_mean(d[groups == g], n_boot=max(s.n_boot // 2, 100), seed=s.seed)
-        se[str(g)] = max(b["se"], 1e-300)
+        se[str(g)] = b["se"]
         sd[str(g)] = math.sqrt(b["se"] ** 2 + refit_sd(groups == g) ** 2)
         if b["mean"] + z * sd[str(g)] < 0:
             hurt.append(str(g))
@@ -416,7 +416,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     # walking gain was 1.6e-4 ± 5e-5 and squat's 4.2e-4 ± 2.7e-4 had a pooled rest CI of [2e-5, 6.1e-4] and
     # failed). The refit noise is that of the same weighted combination of each twin's group means.
     rest = [str(g) for g in labels if str(g) not in top]
-    w = np.array([1.0 / max(sd[g], 1e-300) ** 2 for g in rest])
+    w = np.array([1.0 / max(sd[g] ** 2, 1e-300) for g in rest])      # the floor: a noise-free group
     w /= w.sum()
     m = np.array([per[g] for g in rest])
     gain_rest = float(w @ m)
