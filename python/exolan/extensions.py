@@ -131,7 +131,7 @@ class ExtendedModel(nn.Module):
         # number for every joint, or {joint index: number} per joint (the others keep the default).
         def start(eff, default, raw):
             v = init.get(eff, default)
-            vals = [v.get(j, v.get(str(j), default)) for j in range(n)] if isinstance(v, dict) else [v] * n
+            vals = [v.get(j, default) for j in range(n)] if isinstance(v, dict) else [v] * n
             return nn.Parameter(torch.tensor([float(raw(float(x))) for x in vals], dtype=dtype))
 
         sp = _inv_softplus

@@ -396,15 +396,15 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     if kind == "none" or len(labels) < 2:
         out.update(passes=True, note="a single recording: task invariance not testable")
         return out
-    def refit_sd(mask):
-        return float(np.sqrt(np.mean([t[mask].mean() ** 2 for t in twins]))) if twins else 0.0
-
+    # every twin refit's mean held-out difference per group: the refit noise of a group, and of any
+    # weighted combination of groups, is the RMS over the twins
+    twin_means = {str(g): np.array([t[groups == g].mean() for t in twins] if twins else [0.0]) for g in labels}
     hurt, sd, se = [], {}, {}
     z = float(scipy_stats.norm.ppf(1 - 0.025 / len(labels)))
     for g in labels:
         b = stats.bootstrap_mean(d[groups == g], n_boot=max(s.n_boot // 2, 100), seed=s.seed)
         se[str(g)] = b["se"]
-        sd[str(g)] = math.sqrt(b["se"] ** 2 + refit_sd(groups == g) ** 2)
+        sd[str(g)] = math.sqrt(b["se"] ** 2 + float(np.mean(twin_means[str(g)] ** 2)))
         if b["mean"] + z * sd[str(g)] < 0:
             hurt.append(str(g))
     out.update(group_sd=sd, hurt=hurt)
@@ -421,8 +421,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     m = np.array([per[g] for g in rest])
     gain_rest = float(w @ m)
     se_rest = float(math.sqrt(np.sum(np.square(w * np.array([se[g] for g in rest])))))
-    sigma_rest = (float(np.sqrt(np.mean([(w @ np.array([t[groups == g].mean() for g in rest])) ** 2 for t in twins])))
-                  if twins else 0.0)
+    sigma_rest = float(np.sqrt(np.mean((w @ np.array([twin_means[g] for g in rest])) ** 2)))
     ci_rest = [gain_rest - 1.96 * se_rest, gain_rest + 1.96 * se_rest]
     above = gain_rest - 1.96 * math.sqrt(se_rest ** 2 + sigma_rest ** 2) > 0
     out.update(dropped=top, gain_rest=gain_rest, ci_rest=ci_rest, refit_sd_rest=sigma_rest,
