@@ -272,3 +272,28 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
+
+
+def test_task_invariance_identification_is_family_wise():
+    """The rest identify θ when its interval at the family-wise level excludes the no-effect value (Bonferroni
+    over the candidates the run considers): a rest θ 2.2 SEs from 0 — a clean world's hip "damping" carried by
+    a small walking gain — is identified by one candidate alone, not by one of 16; a planted friction's
+    6.6 SEs are identified by one of 16. The gain path and the parameter path both depend on it."""
+    rng = np.random.default_rng(5)
+    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
+    s = Settings(n_boot=200)
+    noise = 2e-4 * rng.standard_normal(groups.size)
+    noise -= noise.mean()
+    d = np.where(groups == "calisthenics", 6e-4, 3e-5) + noise
+    quiet = [np.full(groups.size, 1e-6)] * 3
+    se = dict(walk=0.072, squat=0.39, calisthenics=0.067, rest=0.13)
+    weak = _by_group(dict(walk=0.2, squat=0.49, calisthenics=0.49, rest=0.286), se)
+    one = _spread(d, groups, "task", s, twins=quiet, by_group=weak, param_path=False, family=1)
+    many = _spread(d, groups, "task", s, twins=quiet, by_group=weak, param_path=False, family=16)
+    assert one["theta_rest_z"] == pytest.approx(2.2) and one["identification_z"] == pytest.approx(1.96, abs=1e-3)
+    assert one["passes"] and one["rest_identifies"]
+    assert many["identification_z"] == pytest.approx(2.955, abs=1e-3)
+    assert not many["passes"] and not many["rest_identifies"] and "16 candidates" in many["note"]
+    strong = _by_group(dict(walk=0.41, squat=2.1, calisthenics=0.48, rest=0.6), dict(se, rest=0.6 / 6.6))
+    res = _spread(d, groups, "task", s, twins=quiet, by_group=strong, param_path=False, family=16)
+    assert res["passes"] and res["rest_identifies"]

@@ -172,8 +172,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
    one; trials where the data hold one task) where it is largest — the other tasks' gains combined with
    inverse-variance weights, so that the noisiest task does not decide — must still be above 0 beyond its
-   sampling and refit noise, and those tasks must identify the parameter on their own — a term that only soaks up the
-   misfit of the worst-fitted tasks is rejected. Exo-driven terms, whose excitation depends
+   sampling and refit noise, and those tasks must identify the parameter on their own (its interval at the
+   family-wise 95% level, Bonferroni over the candidates considered, excludes the no-effect value) — a term that
+   only soaks up the misfit of the worst-fitted tasks is rejected. Exo-driven terms, whose excitation depends
    on the task, may instead show that the other tasks identify the parameter on their own (Gauss-Newton step,
    HAC SE) and that every task's θ agrees (Cochran's Q, p > 0.05), with a mean gain above 0 there. No task
    may be made worse beyond its sampling and refit noise (Bonferroni over the tasks);
