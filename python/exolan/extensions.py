@@ -63,17 +63,85 @@ def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
     return np.concatenate(out, axis=0) if out else np.zeros((0, max_lag + 1), dtype=np.int64)
 
 
-def exo_derivatives(tau_e: np.ndarray, dt: float, window: int = 9) -> tuple[np.ndarray, np.ndarray]:
-    """Smoothed first and second time derivatives of one trial's recorded exo torque (T, n).
+def velocity_response(trials: Sequence, dt: float, half_width: int = 25) -> np.ndarray | None:
+    """The recorded velocity's filter, estimated from the data: symmetric FIR taps per joint (2 K + 1, n).
 
-    A Savitzky-Golay derivative (cubic, `window` samples = 45 ms at 200 Hz) — the same family of filter the
-    reader uses for q̈ — so the strap correction of q̇ and q̈ is as smooth as the measured ones. NaN samples
-    are zeroed here only for the filter; the caller's `valid` mask keeps them out of every loss.
+    A device reports q̇ through its own filter (unknown: a Butterworth, an observer, a Savitzky-Golay
+    derivative), and the reader differentiates that q̇ again for q̈. A strap's deflection τ_app/k reaches the
+    measured q̇ and q̈ through the same chain, so the model's correction must pass through it too. The taps
+    h_k = h_−k (k ≤ K = `half_width` samples) are the least-squares fit of the recorded velocity on the
+    central difference of the recorded angle, y_t = Σ_k h_k x_{t−k} (numpy lstsq over every finite stretch).
+    The angle's own noise is in both x and y, so it biases nothing, and the time-domain fit has none of a
+    spectral ratio's leakage from the motion's large low-frequency power. Symmetric taps: zero phase (a
+    causal filter's lag would show as a delay). None where the data are too short or the velocity absent.
+    """
+    K = int(half_width)
+    rows, rhs = None, None
+    for t in trials:
+        q, qd = np.asarray(t.q, dtype=np.float64), np.asarray(t.qd, dtype=np.float64)
+        n = q.shape[1]
+        if rows is None:
+            rows, rhs = [[] for _ in range(n)], [[] for _ in range(n)]
+        for a, b in _runs(np.isfinite(q).all(1) & np.isfinite(qd).all(1)):
+            if b - a < 8 * K:
+                continue
+            x = np.gradient(q[a:b], dt, axis=0)
+            T = b - a
+            for j in range(n):
+                # column k: x_{t-k} + x_{t+k} (k ≥ 1), column 0: x_t, for t with the whole window inside
+                X = [x[K:T - K, j]] + [x[K - k:T - K - k, j] + x[K + k:T - K + k, j] for k in range(1, K + 1)]
+                rows[j].append(np.stack(X, 1))
+                rhs[j].append(qd[K:T - K, j])
+    if rows is None or not rows[0]:
+        return None
+    taps = []
+    for j in range(len(rows)):
+        A, y = np.concatenate(rows[j]), np.concatenate(rhs[j])
+        c = np.linalg.lstsq(A, y, rcond=None)[0]
+        taps.append(np.concatenate([c[:0:-1], c]))      # h_-K .. h_K
+    return np.stack(taps, 1)
+
+
+def _runs(mask: np.ndarray):
+    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+    d = np.diff(m)
+    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
+
+
+def _fir(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """x (T, n) filtered with symmetric taps (2 K + 1, n), the trial mirrored at both ends (no edge step)."""
+    K = (taps.shape[0] - 1) // 2
+    out = np.empty_like(x)
+    for j in range(x.shape[1]):
+        ext = np.concatenate([x[K:0:-1, j], x[:, j], x[-2:-K - 2:-1, j]]) if x.shape[0] > K + 1 else \
+            np.pad(x[:, j], K, mode="edge")
+        out[:, j] = np.convolve(ext, taps[:, j], mode="valid")
+    return out
+
+
+def exo_derivatives(tau_e: np.ndarray, dt: float, window: int = 9,
+                    response: np.ndarray | None = None,
+                    qdd_window: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """First and second time derivatives of one trial's recorded exo torque (T, n), as the measured q̇ and q̈
+    would show them.
+
+    With `response` (`velocity_response`: FIR taps of the recorded velocity's own filter) and `qdd_window` (the reader's
+    Savitzky-Golay window for q̈): τ̇ is the central difference filtered by that response, and τ̈ is the
+    reader's q̈ derivative of that τ̇ — the chain a strap deflection τ_app/k goes through on its way into the
+    measured q̇ and q̈. It also keeps the exo torque's sensor noise out: a window-9 second derivative of
+    0.05 N m white noise has an SD of 230 N m/s², up to 14 % of τ̈'s variance in a measured strap world, and
+    noise in a regressor biases its coefficient (the compliance) towards 0 (measured there: k 22 % high).
+    Without them: cubic Savitzky-Golay derivatives over `window` samples. NaN samples are zeroed here only
+    for the filter; the caller's `valid` mask keeps them out of every loss.
     """
     from scipy.signal import savgol_filter
 
     x = np.nan_to_num(np.asarray(tau_e, dtype=np.float64))
     T = x.shape[0]
+    if response is not None and qdd_window is not None and T >= max(qdd_window, 5):
+        d1 = _fir(np.gradient(x, dt, axis=0), response)
+        d2 = savgol_filter(d1, qdd_window, 3, deriv=1, delta=dt, axis=0)
+        return d1, d2
     w = min(window, T if T % 2 == 1 else T - 1)
     if w < 5:
         d1 = np.gradient(x, dt, axis=0) if T > 1 else np.zeros_like(x)

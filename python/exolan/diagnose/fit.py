@@ -47,7 +47,7 @@ from torch import nn
 
 from ..delan import Lagrangian, energy as _energy, solve_inertia
 from ..lim import LIM
-from ..extensions import ExtendedModel, exo_derivatives, lag_table
+from ..extensions import ExtendedModel, exo_derivatives, lag_table, velocity_response
 
 DTYPE = torch.float32   # diagnosis fits run in float32 (speed); export converts to float64
 
@@ -144,12 +144,15 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
                             "trial", "segment", "held")}
     seg_base = 0
     lengths, meta = [], []
+    # the strap's q̇/q̈ correction goes through the measured velocity's own filter and the reader's q̈ filter
+    from ..data import SAVGOL_WINDOW
+    v_resp = velocity_response(trials, dt)
     for i, t in enumerate(trials):
         T = np.asarray(t.q).shape[0]
         lengths.append(T)
         n = len(joints)
         tau_e = np.asarray(t.tau_e, dtype=np.float64) if getattr(t, "tau_e", None) is not None else np.zeros((T, n))
-        d1, d2 = exo_derivatives(tau_e, dt)
+        d1, d2 = exo_derivatives(tau_e, dt, response=v_resp, qdd_window=SAVGOL_WINDOW)
         seg, held = _segments(T, dt, seg_seconds, rng, every)
         f_v = np.asarray(t.f_v, dtype=np.float64) if getattr(t, "f_v", None) is not None else np.zeros(T)
         valid = np.asarray(t.valid, dtype=bool).copy() if getattr(t, "valid", None) is not None else np.ones(T, bool)
