@@ -197,7 +197,7 @@ def _check_time(t: np.ndarray, path: Path) -> float:
     return dt
 
 
-def _finite_runs(mask: np.ndarray):
+def finite_runs(mask: np.ndarray):
     """(start, stop) of the runs of True in mask."""
     m = np.concatenate([[False], mask, [False]]).astype(np.int8)
     d = np.diff(m)
@@ -211,7 +211,7 @@ def savgol_derivative(x: np.ndarray, dt: float, window: int = SAVGOL_WINDOW, ord
     x2 = x.reshape(len(x), -1)
     o2 = out.reshape(len(x), -1)
     for k in range(x2.shape[1]):
-        for a, b in _finite_runs(np.isfinite(x2[:, k])):
+        for a, b in finite_runs(np.isfinite(x2[:, k])):
             if b - a >= window:
                 o2[a:b, k] = savgol_filter(x2[a:b, k], window, order, deriv=1, delta=dt)
     return out

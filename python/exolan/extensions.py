@@ -34,6 +34,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from .data import finite_runs
+
 EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay",
                     "encoder_offset", "torque_bias", "torque_gain", "strap_compliance")
 COULOMB_EPS = 0.01   # rad/s (or m/s): the tanh smoothing of sign(q̇), the same in the world and the engine
@@ -63,7 +65,7 @@ def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
     return np.concatenate(out, axis=0) if out else np.zeros((0, max_lag + 1), dtype=np.int64)
 
 
-def velocity_response(trials: Sequence, dt: float, half_width: int = 25) -> np.ndarray | None:
+def velocity_response(trials: Sequence, dt: float, half_width: int = 25, max_rows: int = 200_000) -> np.ndarray | None:
     """The recorded velocity's filter, estimated from the data: symmetric FIR taps per joint (2 K + 1, n).
 
     A device reports q̇ through its own filter (unknown: a Butterworth, an observer, a Savitzky-Golay
@@ -73,16 +75,21 @@ def velocity_response(trials: Sequence, dt: float, half_width: int = 25) -> np.n
     central difference of the recorded angle, y_t = Σ_k h_k x_{t−k} (numpy lstsq over every finite stretch).
     The angle's own noise is in both x and y, so it biases nothing, and the time-domain fit has none of a
     spectral ratio's leakage from the motion's large low-frequency power. Symmetric taps: zero phase (a
-    causal filter's lag would show as a delay). None where the data are too short or the velocity absent.
+    causal filter's lag would show as a delay). At most `max_rows` samples per joint enter the fit (whole
+    finite stretches, in trial order): 26 taps need far fewer, and a paper-scale dataset would otherwise
+    build a design matrix of gigabytes. None where the data are too short or the velocity absent.
     """
     K = int(half_width)
     rows, rhs = None, None
+    used = 0
     for t in trials:
+        if used >= max_rows:
+            break
         q, qd = np.asarray(t.q, dtype=np.float64), np.asarray(t.qd, dtype=np.float64)
         n = q.shape[1]
         if rows is None:
             rows, rhs = [[] for _ in range(n)], [[] for _ in range(n)]
-        for a, b in _runs(np.isfinite(q).all(1) & np.isfinite(qd).all(1)):
+        for a, b in finite_runs(np.isfinite(q).all(1) & np.isfinite(qd).all(1)):
             if b - a < 8 * K:
                 continue
             x = np.gradient(q[a:b], dt, axis=0)
@@ -92,6 +99,7 @@ def velocity_response(trials: Sequence, dt: float, half_width: int = 25) -> np.n
                 X = [x[K:T - K, j]] + [x[K - k:T - K - k, j] + x[K + k:T - K + k, j] for k in range(1, K + 1)]
                 rows[j].append(np.stack(X, 1))
                 rhs[j].append(qd[K:T - K, j])
+            used += T - 2 * K
     if rows is None or not rows[0]:
         return None
     taps = []
@@ -100,12 +108,6 @@ def velocity_response(trials: Sequence, dt: float, half_width: int = 25) -> np.n
         c = np.linalg.lstsq(A, y, rcond=None)[0]
         taps.append(np.concatenate([c[:0:-1], c]))      # h_-K .. h_K
     return np.stack(taps, 1)
-
-
-def _runs(mask: np.ndarray):
-    m = np.concatenate([[False], mask, [False]]).astype(np.int8)
-    d = np.diff(m)
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
 
 
 def _fir(x: np.ndarray, taps: np.ndarray) -> np.ndarray:

@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ..data import SAVGOL_WINDOW
 from ..delan import Lagrangian, energy as _energy, solve_inertia
 from ..lim import LIM
 from ..extensions import ExtendedModel, exo_derivatives, lag_table, velocity_response
@@ -145,7 +146,6 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
     seg_base = 0
     lengths, meta = [], []
     # the strap's q̇/q̈ correction goes through the measured velocity's own filter and the reader's q̈ filter
-    from ..data import SAVGOL_WINDOW
     v_resp = velocity_response(trials, dt)
     for i, t in enumerate(trials):
         T = np.asarray(t.q).shape[0]
