@@ -9,7 +9,7 @@ import torch
 
 from exolan.diagnose import stats
 from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, train
-from exolan.diagnose.procedure import Settings, _held_groups, _spread
+from exolan.diagnose.procedure import Settings, _held_groups, _invariance_reason, _spread
 from exolan.diagnose.synthetic import two_link
 
 
@@ -294,6 +294,7 @@ def test_task_invariance_identification_is_family_wise():
     assert one["passes"] and one["rest_identifies"]
     assert many["identification_z"] == pytest.approx(2.955, abs=1e-3)
     assert not many["passes"] and not many["rest_identifies"] and "16 candidates" in many["note"]
+    assert "2.2 SEs from its no-effect value (not identified: 2.96 needed" in _invariance_reason(many)
     strong = _by_group(dict(walk=0.41, squat=2.1, calisthenics=0.48, rest=0.6), dict(se, rest=0.6 / 6.6))
     res = _spread(d, groups, "task", s, twins=quiet, by_group=strong, param_path=False, family=16)
     assert res["passes"] and res["rest_identifies"]

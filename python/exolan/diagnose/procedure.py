@@ -479,7 +479,9 @@ def _invariance_reason(ti: dict) -> str:
            f"[{ti['ci_rest'][0]:.3g}, {ti['ci_rest'][1]:.3g}] (a property of the joint helps in every {ti['by']})")
     if "theta_rest" in ti:
         why += (f"; there the parameter is {ti['theta_rest']:.3g} [{ti['theta_rest_ci'][0]:.3g}, "
-                f"{ti['theta_rest_ci'][1]:.3g}], and the {ti['by']}s' estimates "
+                f"{ti['theta_rest_ci'][1]:.3g}], {ti['theta_rest_z']:.2g} SEs from its no-effect value "
+                f"({'identified' if ti['rest_identifies'] else 'not identified'}: {ti['identification_z']:.3g} "
+                f"needed, family-wise over the candidates), and the {ti['by']}s' estimates "
                 f"{'agree' if ti['heterogeneity']['p'] > 0.05 else 'differ'} (Cochran Q p = {ti['heterogeneity']['p']:.2g})")
     return why
 
