@@ -92,13 +92,13 @@ def velocity_response(trials: Sequence, dt: float, half_width: int = 25, max_row
         for a, b in finite_runs(np.isfinite(q).all(1) & np.isfinite(qd).all(1)):
             if b - a < 8 * K:
                 continue
-            x = np.gradient(q[a:b], dt, axis=0)
+            x, v = np.gradient(q[a:b], dt, axis=0), qd[a:b]
             T = b - a
             for j in range(n):
                 # column k: x_{t-k} + x_{t+k} (k ≥ 1), column 0: x_t, for t with the whole window inside
                 X = [x[K:T - K, j]] + [x[K - k:T - K - k, j] + x[K + k:T - K + k, j] for k in range(1, K + 1)]
                 rows[j].append(np.stack(X, 1))
-                rhs[j].append(qd[K:T - K, j])
+                rhs[j].append(v[K:T - K, j])
             used += T - 2 * K
     if rows is None or not rows[0]:
         return None
@@ -107,7 +107,8 @@ def velocity_response(trials: Sequence, dt: float, half_width: int = 25, max_row
         A, y = np.concatenate(rows[j]), np.concatenate(rhs[j])
         c = np.linalg.lstsq(A, y, rcond=None)[0]
         taps.append(np.concatenate([c[:0:-1], c]))      # h_-K .. h_K
-    return np.stack(taps, 1)
+    taps = np.stack(taps, 1)
+    return taps if np.isfinite(taps).all() else None
 
 
 def _fir(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
