@@ -133,16 +133,21 @@ def _by_group(theta: dict, se: dict):
     return f
 
 
+def _rest_gain_case(seed: int, sd: float, top: float, rest: float):
+    """Three tasks' held-out gain series: calisthenics at `top`, walk and squat at `rest`, plus zero-mean white
+    noise of SD `sd`. Returns (rng, groups, settings, d, noise)."""
+    rng = np.random.default_rng(seed)
+    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
+    noise = sd * rng.standard_normal(groups.size)
+    noise -= noise.mean()
+    return rng, groups, Settings(n_boot=200), np.where(groups == "calisthenics", top, rest) + noise, noise
+
+
 def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disagreeing_ones():
     """Rule 5's second path: the rest's gain is not significant, but the rest identify θ and the tasks agree
     (Cochran's Q) — a small real effect; the same with tasks that disagree — a misfit soaked up differently
     in each task; and a task made worse beyond its noise fails whatever θ says."""
-    rng = np.random.default_rng(1)
-    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
-    s = Settings(n_boot=200)
-    noise = 3e-3 * rng.standard_normal(groups.size)
-    noise -= noise.mean()
-    d = np.where(groups == "calisthenics", 3e-4, 2e-5) + noise
+    rng, groups, s, d, noise = _rest_gain_case(1, 3e-3, 3e-4, 2e-5)
     assert not _spread(d, groups, "task", s)["passes"]          # the gain path alone fails
     se = dict(walk=0.003, squat=0.006, calisthenics=0.005, rest=0.0026)
     agree = dict(walk=0.025, squat=0.036, calisthenics=0.029, rest=0.0275)
@@ -169,12 +174,7 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
 def test_task_invariance_gain_path_counts_the_refit_noise_of_the_rest():
     """A rest gain whose bootstrap CI is above 0 but which a refit with another minibatch order changes as
     much does not pass the gain path (as rule 2 for the whole gain)."""
-    rng = np.random.default_rng(2)
-    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
-    s = Settings(n_boot=200)
-    noise = 2e-4 * rng.standard_normal(groups.size)
-    noise -= noise.mean()
-    d = np.where(groups == "calisthenics", 3e-4, 3e-5) + noise
+    _, groups, s, d, _ = _rest_gain_case(2, 2e-4, 3e-4, 3e-5)
     quiet = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3)
     assert quiet["passes"] and quiet["ci_rest"][0] > 0
     noisy = _spread(d, groups, "task", s, twins=[np.full(groups.size, 3e-5), np.full(groups.size, -3e-5)])
@@ -279,12 +279,7 @@ def test_task_invariance_identification_is_family_wise():
     over the candidates the run considers): a rest θ 2.2 SEs from 0 — a clean world's hip "damping" carried by
     a small walking gain — is identified by one candidate alone, not by one of 16; a planted friction's
     6.6 SEs are identified by one of 16. The gain path and the parameter path both depend on it."""
-    rng = np.random.default_rng(5)
-    groups = np.repeat(np.array(["walk", "squat", "calisthenics"]), 3000)
-    s = Settings(n_boot=200)
-    noise = 2e-4 * rng.standard_normal(groups.size)
-    noise -= noise.mean()
-    d = np.where(groups == "calisthenics", 6e-4, 3e-5) + noise
+    _, groups, s, d, _ = _rest_gain_case(5, 2e-4, 6e-4, 3e-5)
     quiet = [np.full(groups.size, 1e-6)] * 3
     se = dict(walk=0.072, squat=0.39, calisthenics=0.067, rest=0.13)
     weak = _by_group(dict(walk=0.2, squat=0.49, calisthenics=0.49, rest=0.286), se)
