@@ -65,7 +65,8 @@ def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
     return np.concatenate(out, axis=0) if out else np.zeros((0, max_lag + 1), dtype=np.int64)
 
 
-def velocity_response(trials: Sequence, dt: float, half_width: int = 25, max_rows: int = 200_000) -> np.ndarray | None:
+def velocity_response(trials: Sequence, dt: float, half_width: int = 25,
+                      max_rows: int = 200_000) -> np.ndarray | None:
     """The recorded velocity's filter, estimated from the data: symmetric FIR taps per joint (2 K + 1, n).
 
     A device reports q̇ through its own filter (unknown: a Butterworth, an observer, a Savitzky-Golay
@@ -128,10 +129,10 @@ def exo_derivatives(tau_e: np.ndarray, dt: float, window: int = 9,
     """First and second time derivatives of one trial's recorded exo torque (T, n), as the measured q̇ and q̈
     would show them.
 
-    With `response` (`velocity_response`: FIR taps of the recorded velocity's own filter) and `qdd_window` (the reader's
-    Savitzky-Golay window for q̈): τ̇ is the central difference filtered by that response, and τ̈ is the
-    reader's q̈ derivative of that τ̇ — the chain a strap deflection τ_app/k goes through on its way into the
-    measured q̇ and q̈. It also keeps the exo torque's sensor noise out: a window-9 second derivative of
+    With `response` (`velocity_response`: FIR taps of the recorded velocity's own filter) and `qdd_window`
+    (the reader's Savitzky-Golay window for q̈): τ̇ is the central difference filtered by that response, and
+    τ̈ is the reader's q̈ derivative of that τ̇ — the chain a strap deflection τ_app/k goes through on its way
+    into the measured q̇ and q̈. It also keeps the exo torque's sensor noise out: a window-9 second derivative of
     0.05 N m white noise has an SD of 230 N m/s², up to 14 % of τ̈'s variance in a measured strap world, and
     noise in a regressor biases its coefficient (the compliance) towards 0 (measured there: k 22 % high).
     Without them: cubic Savitzky-Golay derivatives over `window` samples. NaN samples are zeroed here only

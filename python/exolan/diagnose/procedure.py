@@ -29,8 +29,8 @@ statistic of the data at hand):
    where the data hold a single task) and the quarter of the groups (at least one) where it is largest is
    set aside. The rest must still show a gain (their groups' gains combined with inverse-variance weights,
    above 0 beyond sampling and twin-refit noise) and identify the parameter on their own (family-wise:
-   Bonferroni over the candidates considered, since each of them gets this chance). Exo-driven terms, whose excitation (the exo
-   torque's rate) is task-dependent, may pass instead by the parameter: the rest identify it on their own
+   Bonferroni over the candidates considered, since each of them gets this chance). Exo-driven terms,
+   whose excitation (the exo torque's rate) is task-dependent, may pass instead by the parameter: the rest identify it on their own
    (one Gauss-Newton step with HAC SE on their held-out residual), every group's θ agrees (Cochran's Q,
    p > 0.05) and the rest's mean gain is above 0 — the more sensitive test for a small effect such as a
    35 ms delay, whose gain on the other tasks cannot beat a refit's noise. No group may be made worse
