@@ -30,11 +30,11 @@ statistic of the data at hand):
    set aside. The rest must still show a gain (their groups' gains combined with inverse-variance weights,
    above 0 beyond sampling and twin-refit noise) and identify the parameter on their own (family-wise:
    Bonferroni over the candidates considered, since each of them gets this chance). Exo-driven terms,
-   whose excitation (the exo torque's rate) is task-dependent, may pass instead by the parameter: the rest identify it on their own
-   (one Gauss-Newton step with HAC SE on their held-out residual), every group's θ agrees (Cochran's Q,
-   p > 0.05) and the rest's mean gain is above 0 — the more sensitive test for a small effect such as a
-   35 ms delay, whose gain on the other tasks cannot beat a refit's noise. No group may be made worse
-   beyond its sampling and refit noise (Bonferroni over the groups). Data with a single trial cannot be
+   whose excitation (the exo torque's rate) is task-dependent, may pass instead by the parameter: the rest
+   identify it on their own (one Gauss-Newton step with HAC SE on their held-out residual), every group's θ
+   agrees (Cochran's Q, p > 0.05) and the rest's mean gain is above 0 — the more sensitive test for a small
+   effect such as a 35 ms delay, whose gain on the other tasks cannot beat a refit's noise. No group may be
+   made worse beyond its sampling and refit noise (Bonferroni over the groups). Data with a single trial cannot be
    split: the report says so and the rule is skipped. The rule applies to exo-driven terms too: a clean
    world's hip "delay" resting on jumps and calisthenics beat its future-torque null; its tasks wanted
    0.02 s (standing) to 0.11 s (calisthenics), Q's p = 3e-6.
