@@ -113,14 +113,12 @@ def velocity_response(trials: Sequence, dt: float, half_width: int = 25,
 
 
 def _fir(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
-    """x (T, n) filtered with symmetric taps (2 K + 1, n), the trial mirrored at both ends (no edge step)."""
-    K = (taps.shape[0] - 1) // 2
-    out = np.empty_like(x)
-    for j in range(x.shape[1]):
-        ext = np.concatenate([x[K:0:-1, j], x[:, j], x[-2:-K - 2:-1, j]]) if x.shape[0] > K + 1 else \
-            np.pad(x[:, j], K, mode="edge")
-        out[:, j] = np.convolve(ext, taps[:, j], mode="valid")
-    return out
+    """x (T, n) filtered with symmetric taps (2 K + 1, n), the trial mirrored at both ends (no edge step);
+    a trial shorter than the half-width is extended with its end values instead."""
+    from scipy.ndimage import convolve1d
+
+    mode = "mirror" if x.shape[0] > (taps.shape[0] - 1) // 2 + 1 else "nearest"
+    return np.stack([convolve1d(x[:, j], taps[:, j], mode=mode) for j in range(x.shape[1])], axis=1)
 
 
 def exo_derivatives(tau_e: np.ndarray, dt: float, window: int = 9,

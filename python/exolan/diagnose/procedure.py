@@ -446,10 +446,11 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
             p_het = float(scipy_stats.chi2.sf(Q, len(th) - 1))
             lo, hi = rest["estimate"] - 1.96 * rest["se"], rest["estimate"] + 1.96 * rest["se"]
             z_id = float(scipy_stats.norm.ppf(1 - 0.025 / max(family, 1)))
-            identified = bool(abs(rest["estimate"] - neutral) > z_id * rest["se"])
+            z_rest = float(abs(rest["estimate"] - neutral) / rest["se"])
+            identified = bool(z_rest > z_id)
             consistent = bool(identified and p_het > 0.05)
             out.update(theta_by_group={g: v for g, v in pg.items() if g != "rest"}, theta_rest=rest["estimate"],
-                       theta_rest_ci=[lo, hi], theta_rest_z=float(abs(rest["estimate"] - neutral) / rest["se"]),
+                       theta_rest_ci=[lo, hi], theta_rest_z=z_rest,
                        identification_z=z_id, heterogeneity=dict(Q=Q, df=len(th) - 1, p=p_het),
                        consistent=consistent)
             out["rest_identifies"] = identified
@@ -458,7 +459,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
                 # identify on their own (rule 4 on the rest), or it is a flexible term's help, not this effect
                 out["passes"] = False
                 out["note"] = (f"without {', '.join(top)} the gain is above 0 but those {kind}s do not identify "
-                               f"the parameter (θ {rest['estimate']:.3g} is {out['theta_rest_z']:.2g} SEs from its "
+                               f"the parameter (θ {rest['estimate']:.3g} is {z_rest:.2g} SEs from its "
                                f"no-effect value, {z_id:.3g} needed for {family} candidates)")
             if param_path and consistent and not out["passes"] and gain_rest > 0:
                 out["passes"] = True
