@@ -370,13 +370,21 @@ class ExtendedModel(nn.Module):
         current sample or (B, K+1, n) histories (column k = k samples earlier, clamped at the trial start;
         `lag_table` builds the indices). The delay term needs the history.
         """
+        return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd)[0]
+
+    def inverse_inertia(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None):
+        """(`inverse`, H): H(q, z) at the physical coordinates the base used, or None where the base does not
+        expose its inertia (a fit's acceleration term reuses it instead of evaluating the network again)."""
         if tau_e is None:
             tau_e = torch.zeros_like(q)
         tau_now = self._hist(tau_e)[:, 0]
         tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd)
         qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd)
-        tau = self.base.inverse(qt, qdt, qddt, z, f_v)
-        return tau + self.friction(qdt) + self.recording_terms(tau_now, tau_app)
+        if hasattr(self.base, "inverse_inertia"):
+            tau, H = self.base.inverse_inertia(qt, qdt, qddt, z, f_v)
+        else:
+            tau, H = self.base.inverse(qt, qdt, qddt, z, f_v), None
+        return tau + self.friction(qdt) + self.recording_terms(tau_now, tau_app), H
 
     def forward_dynamics(self, q, qd, tau, z, f_v, tau_e=None, tau_app=None):
         """q̈ in *physical* coordinates (q, q̇ physical) for the recorded total torque τ.

@@ -230,7 +230,7 @@ class SlowContextDeLaN(nn.Module):
 
     def _tilt_shift(self, q, f_v):
         """(Δq, Δq̇, Δq̈) of the pelvis tilt that follows the other hip; None without the term or a partner.
-        (The fits' acceleration term `inertia_of` takes H at the measured q: the shift only moves its weights.)"""
+        (The fits' acceleration term takes the H of the tilted coordinates, the one the inverse dynamics used.)"""
         if self.tilt is None or f_v.dim() != q.dim() or f_v.shape[-1] < 5:
             return None
         e0 = torch.zeros(q.shape[-1], dtype=q.dtype); e0[0] = 1.0
@@ -251,9 +251,13 @@ class SlowContextDeLaN(nn.Module):
         return H, rest, (None if sh is None else sh[2])
 
     def inverse(self, q, qd, qdd, z, f_v):
+        return self.inverse_inertia(q, qd, qdd, z, f_v)[0]
+
+    def inverse_inertia(self, q, qd, qdd, z, f_v):
+        """(τ̂, H): the inverse dynamics and the inertia it used (the fits' acceleration term reuses H)."""
         H, rest, dqdd = self._rhs_terms(q, qd, z, f_v)
         qdd_a = qdd if dqdd is None else qdd - dqdd
-        return (H @ qdd_a.unsqueeze(-1)).squeeze(-1) + rest
+        return (H @ qdd_a.unsqueeze(-1)).squeeze(-1) + rest, H
 
     def forward_dynamics(self, q, qd, tau, z, f_v):
         H, rest, dqdd = self._rhs_terms(q, qd, z, f_v)
@@ -345,12 +349,27 @@ def predict(model: nn.Module, flat: Flat, idx: torch.Tensor, chunk: int = 16384)
     return torch.cat(out, 0) if out else flat.tau[:0]
 
 
+def _inputs(model, base, flat: Flat, b: torch.Tensor) -> tuple:
+    """The model's inverse-dynamics arguments at rows b. Only a delay needs the exo torque's history; the
+    other terms take the current row (gathering the (B, K+1, n) histories costs 4 % of a diagnosis)."""
+    args = (flat.q[b], flat.qd[b], flat.qdd[b], base.z_of(flat.trial[b]), flat.forces(b))
+    if not isinstance(model, ExtendedModel):
+        return args
+    ex = (flat.exo_hist(b) if "actuation_delay" in model.effects
+          else (flat.tau_e[b], flat.tau_e_d[b], flat.tau_e_dd[b]))
+    return args + tuple(ex)
+
+
 def _forward(model, base, flat: Flat, b: torch.Tensor) -> torch.Tensor:
-    z = base.z_of(flat.trial[b])
-    if isinstance(model, ExtendedModel):
-        he, hd, hdd = flat.exo_hist(b)
-        return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b), he, hd, hdd)
-    return model.inverse(flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b))
+    return model.inverse(*_inputs(model, base, flat, b))
+
+
+def _forward_inertia(model, base, flat: Flat, b: torch.Tensor):
+    """(τ̂, H) at rows b, H the inertia the inverse dynamics used: one evaluation of the inertia network per
+    fit step instead of two (evaluated here only where the model does not expose it)."""
+    args = _inputs(model, base, flat, b)
+    tau, H = model.inverse_inertia(*args) if hasattr(model, "inverse_inertia") else (model.inverse(*args), None)
+    return tau, (H if H is not None else inertia_of(model, flat.q[b], args[3]))
 
 
 def sq_errors(model, flat: Flat, idx: torch.Tensor) -> np.ndarray:
@@ -369,7 +388,11 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     Why the acceleration term: torque errors alone leave H loose in directions the data excite little, and a
     tiny H makes forward dynamics stiff enough that open-loop rollouts explode within a few steps. Because
     the predicted torque is H q̈ + (terms without q̈), the forward-dynamics error is H⁻¹ (τ − τ̂) exactly: one
-    2x2 solve per sample, no separate forward pass.
+    2x2 solve per sample with the H the inverse dynamics just used, no separate forward pass. Its known cost:
+    |H⁻¹ e| shrinks as H grows, so the term also pulls H up wherever a torque misfit remains. In a world with
+    a 50 ms knee delay the fitted inertia's small eigenvalue came out about 4x the world's (0.53 vs 0.13 kg m²)
+    and a from-scratch delay fit ended at 35 ms (44 ms without the term, but then H collapses at a few states
+    and rollouts diverge within 20 steps).
 
     Adam with minibatches; the extension's physical scalars get their own (larger) step because they are
     few and well scaled. `average=True` ends on the running mean of the weights over the second half of
@@ -398,13 +421,12 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     avg, n_avg, start_avg = None, 0, steps // 2
     for step in range(steps):
         b = tr[torch.randint(len(tr), (min(batch, len(tr)),), generator=g)]
-        pred = _forward(model, base, flat, b)
+        pred, H = _forward_inertia(model, base, flat, b) if w_acc > 0 else (_forward(model, base, flat, b), None)
         err = pred - flat.tau[b]
         r = err / (flat.mass[b, None] * scale)
         w = flat.weight[b] if weighted and flat.weight is not None else 1.0
         loss = (w * r ** 2).sum(-1).mean()
         if w_acc > 0:
-            H = inertia_of(model, flat.q[b], base.z_of(flat.trial[b]))
             a_err = solve_inertia(H, err) / acc_scale
             loss = loss + w_acc * (w * a_err ** 2).sum(-1).mean()
         opt.zero_grad(set_to_none=True)
