@@ -97,6 +97,7 @@ def test_terms_match_autograd_oracle(joint_types, dz):
     torch.testing.assert_close(H, M_o, rtol=0, atol=1e-10)
     torch.testing.assert_close(c, c_o, rtol=0, atol=1e-10)
     torch.testing.assert_close(g, g_o, rtol=0, atol=1e-10)
+    torch.testing.assert_close(lag.gravity(q, z), g_o, rtol=0, atol=1e-10)   # g alone, without the inertia network
     torch.testing.assert_close(tau, tau_o, rtol=0, atol=1e-10)
     # forward dynamics inverts inverse dynamics
     torch.testing.assert_close(qdd_fd, qdd, rtol=0, atol=1e-10)

@@ -148,6 +148,7 @@ def _check_world(tmp_path, case, users=2, tasks="walk,squat,calisthenics", secon
     truth = json.loads((root / "effects.json").read_text()) if (root / "effects.json").exists() else []
     found = _accepted(rep)
     msg = f"case {case} seed {seed} truth {truth}: findings {rep['findings']}"
+    print(msg)      # the draw, also when it passes (pytest -rP shows it): pass rates over draws are measured
     if case in ("clean", "encoder_offset"):
         assert found == [], msg
         if case == "encoder_offset":

@@ -196,6 +196,17 @@ class Lagrangian(nn.Module):
         x, _ = self._inputs(qf, zf)
         return (self.v_scale * mlp_forward(self.V, x)[:, 0]).reshape(lead)
 
+    def gravity(self, q: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
+        """g = ∂V/∂q (..., n) alone, without the inertia network (the diagnosis's load term needs only g)."""
+        z = self._z(z, q)
+        lead, (qf, zf) = self._flatten(q, z)
+        x, dphi = self._inputs(qf, zf)
+        return self._gravity(x, dphi).reshape(*lead, self.n)
+
+    def _gravity(self, x: torch.Tensor, dphi: torch.Tensor) -> torch.Tensor:
+        _, dv = mlp_forward_jac(self.V, x, dphi)
+        return self.v_scale * dv[:, 0, :]
+
     def terms(self, q: torch.Tensor, qd: torch.Tensor, z: torch.Tensor | None = None) -> Terms:
         """H, c = Ḣ q̇ − ½ ∂(q̇ᵀ H q̇)/∂q and g = ∂V/∂q, all from one forward-mode pass."""
         z = self._z(z, q)
@@ -211,8 +222,7 @@ class Lagrangian(nn.Module):
         dLt_qd = torch.einsum("bijk,bi->bjk", dL, qdf)                            # (N, n, n): [j, k]
         dT = torch.einsum("bjk,bj->bk", dLt_qd, Lt_qd)
         c = Hd_qd.squeeze(-1) - dT
-        _, dv = mlp_forward_jac(self.V, x, dphi)
-        g = self.v_scale * dv[:, 0, :]
+        g = self._gravity(x, dphi)
         n = self.n
         return Terms(H.reshape(*lead, n, n), c.reshape(*lead, n), g.reshape(*lead, n))
 

@@ -159,6 +159,11 @@ class ExoModel(nn.Module):
         self._need_lagrangian("terms")
         return self.delan.terms(q, qd, self._z(z, q))
 
+    def gravity(self, q, z=None) -> torch.Tensor:
+        """g(q, z) = ∂V/∂q alone."""
+        self._need_lagrangian("gravity")
+        return self.delan.gravity(q, self._z(z, q))
+
     def inverse(self, q, qd, qdd, z=None, f_v=None) -> torch.Tensor:
         z = self._z(z, q)
         if self.delan is not None:

@@ -293,8 +293,7 @@ class PooledContext(nn.Module):
         """κ ⊙ g(q, z) f_v,other (0 without the term or without a partner)."""
         if self.body_load is None or f_v.dim() != q.dim():
             return None
-        g = self.model.terms(q, torch.zeros_like(q), z)[2]
-        return self.body_load * g * f_v[..., 1].unsqueeze(-1)
+        return self.body_load * self.model.gravity(q, z) * f_v[..., 1].unsqueeze(-1)
 
     @staticmethod
     def _own(q, f_v):
