@@ -144,10 +144,10 @@ def plot_gains(out: Path, results: list) -> str | None:
     ax.set_yticklabels([f"{e['effect']}:{e['joint']} ({e['status']})" for e in rows], fontsize=7)
     ax.axvline(0, color="k", lw=0.5)
     ax.set_xscale("symlog", linthresh=1e-3)
-    ax.set_xlabel("held-out gain in mass-normalised torque MSE [(N m/kg)²] with 95% block-bootstrap CI")
+    ax.set_xlabel("held-out gain in mass-normalised torque MSE [(N m/kg)²]\nwith 95% block-bootstrap CI")
     fig.tight_layout()
     fname = "candidate_gains.png"
-    fig.savefig(out / fname, dpi=90)
+    fig.savefig(out / fname, dpi=90, bbox_inches="tight")
     plt.close(fig)
     return fname
 
