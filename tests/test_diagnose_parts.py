@@ -91,7 +91,25 @@ def test_forward_error_is_inertia_inverse_of_torque_error():
         qdd_fd = base.forward_dynamics(flat.q[b], flat.qd[b], flat.tau[b], z, f)
         H = inertia_of(base, flat.q[b], z)
         rhs = torch.linalg.solve(H.double(), (flat.tau[b] - tau_hat).double().unsqueeze(-1))[..., 0]
+        # the fits take H from the inverse dynamics itself: the same H and τ̂
+        tau_shared, H_shared = base.inverse_inertia(flat.q[b], flat.qd[b], flat.qdd[b], z, f)
     np.testing.assert_allclose((qdd_fd - flat.qdd[b]).double().numpy(), rhs.numpy(), rtol=2e-3, atol=2e-3)
+    assert torch.equal(H_shared, H) and torch.equal(tau_shared, tau_hat)
+
+
+def test_extended_model_shares_the_inertia_at_its_physical_coordinates():
+    """The fits' acceleration term takes H where the inverse dynamics evaluated it: after the encoder offset."""
+    flat = prepare(_leg_pair())
+    base = make_base(flat, hidden=8, seed=1)
+    ext = extend(base, flat, [("encoder_offset", 0)], init={"encoder_offset": 0.1})
+    with torch.no_grad():
+        b = torch.arange(0, 50)
+        z = base.z_of(flat.trial[b])
+        args = (flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b), flat.tau_e[b])
+        tau, H = ext.inverse_inertia(*args)
+        assert torch.equal(tau, ext.inverse(*args))
+        torch.testing.assert_close(H, inertia_of(ext, flat.q[b] - torch.tensor([0.1, 0.0]), z))
+        assert not torch.allclose(H, inertia_of(ext, flat.q[b], z))
 
 
 def test_refit_averages_the_networks_but_not_the_physical_scalars(arm):
