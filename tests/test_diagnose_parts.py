@@ -9,7 +9,7 @@ import torch
 
 from exolan.diagnose import stats
 from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, train
-from exolan.diagnose.procedure import Settings, _held_groups, _invariance_reason, _spread
+from exolan.diagnose.procedure import Settings, _held_groups, _invariance_reason, _spread, _track_lag
 from exolan.diagnose.synthetic import two_link
 
 
@@ -311,3 +311,17 @@ def test_task_invariance_identification_is_family_wise():
     strong = _by_group(dict(walk=0.41, squat=2.1, calisthenics=0.48, rest=0.6), dict(se, rest=0.6 / 6.6))
     res = _spread(d, groups, "task", s, twins=quiet, by_group=strong, param_path=False, family=16)
     assert res["passes"] and res["rest_identifies"]
+
+
+@pytest.mark.parametrize("lag", [3, 7])
+def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
+    """An assistive controller's torque is a lagged share of the joint torque: the gain's null takes it there."""
+    trials = _leg_pair(T=2000)
+    rng = np.random.default_rng(1)
+    for t in trials:
+        smooth = np.convolve(rng.normal(0, 10, t.tau.shape[0] + 40), np.hanning(25), "same")[20:-20]
+        t.tau = np.stack([smooth, smooth[::-1]], 1)
+        t.tau_e = np.zeros_like(t.tau)
+        t.tau_e[lag:] = 0.3 * t.tau[:-lag] + rng.normal(0, 0.05, (t.tau.shape[0] - lag, 2))
+    flat = prepare(trials)
+    assert _track_lag(flat, 0) == lag and _track_lag(flat, 1) == lag

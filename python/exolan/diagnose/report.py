@@ -165,8 +165,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    misfit there, so that the tasks the model fits worst do not pull a joint's parameter; the gains are not
    weighted (they are the torque error you see);
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
-   taken from the future (at the lag ≥ 25 ms where it correlates most with the residual): the future exo torque
-   cannot act now but shares the assistive controller's correlation with the human torque;
+   taken from the future (at the lag ≥ 25 ms where it correlates most with the residual; a gain also at the
+   controller's tracking lag): the future exo torque cannot act now but shares the assistive controller's
+   correlation with the human torque;
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
