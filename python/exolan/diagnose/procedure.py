@@ -143,30 +143,27 @@ def _advanced(flat: Flat, k: np.ndarray) -> Flat:
     return f
 
 
+def _future_peak(x: torch.Tensor, tau_e: torch.Tensor, min_lag: int, max_lag: int) -> int:
+    """Future lag (samples, min_lag..max_lag) of the exo torque at which |ccf(x, τ_e)| peaks."""
+    cc = stats.cross_correlation(x.numpy().astype(np.float64), tau_e.numpy().astype(np.float64), max_lag)
+    lags = np.asarray(cc["lags"]); vals = np.abs(np.asarray(cc["ccf"]))
+    sel = lags <= -min_lag          # negative lag: the exo torque *after* the sample of x
+    return int(-lags[sel][np.argmax(vals[sel])]) if sel.any() else min_lag
+
+
 def _leak_lag(model, flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) -> int:
     """Future lag (samples) at which the exo torque of joint j correlates most with the training residual."""
-    tr = flat.index("train")
-    if len(tr) > 40000:
-        tr = tr[:40000]
-    r = (flat.tau[tr, j] - predict(model, flat, tr)[:, j]).numpy().astype(np.float64)
-    cc = stats.cross_correlation(r, flat.tau_e[tr, j].numpy().astype(np.float64), max_lag)
-    lags = np.asarray(cc["lags"]); vals = np.abs(np.asarray(cc["ccf"]))
-    sel = lags <= -min_lag          # negative lag: the exo torque *after* the residual sample
-    return int(-lags[sel][np.argmax(vals[sel])]) if sel.any() else min_lag
+    tr = flat.index("train")[:40000]
+    r = flat.tau[tr, j] - predict(model, flat, tr)[:, j]
+    return _future_peak(r, flat.tau_e[tr, j], min_lag, max_lag)
 
 
 def _track_lag(flat: Flat, j: int, max_lag: int = 40) -> int:
     """Future lag (samples, ≥ 1) at which the exo torque of joint j copies the recorded joint torque best: the
     assistive controller's tracking lag. A lag-free term on the exo torque (a gain) that only rescales the
     joint's own torque does as well from the exo torque taken there."""
-    tr = flat.index("train")
-    if len(tr) > 40000:
-        tr = tr[:40000]
-    cc = stats.cross_correlation(flat.tau[tr, j].numpy().astype(np.float64),
-                                 flat.tau_e[tr, j].numpy().astype(np.float64), max_lag)
-    lags = np.asarray(cc["lags"]); vals = np.abs(np.asarray(cc["ccf"]))
-    sel = lags <= -1
-    return int(-lags[sel][np.argmax(vals[sel])]) if sel.any() else 1
+    tr = flat.index("train")[:40000]
+    return _future_peak(flat.tau[tr, j], flat.tau_e[tr, j], 1, max_lag)
 
 
 def _sensitivity(model: ExtendedModel, flat: Flat, effect: str, j: int, idx: torch.Tensor):
