@@ -172,7 +172,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
    one; trials where the data hold one task) where it is largest — the other tasks' gains combined with
-   inverse-variance weights, so that the noisiest task does not decide — must still be above 0 beyond its
+   weights 1/SD (Stouffer: every task's z-score counts alike, so that neither the noisiest task nor the most
+   stereotyped one, where a conservative model absorbs the most, decides) — must still be above 0 beyond its
    sampling and refit noise, and those tasks must identify the parameter on their own (its interval at the
    family-wise 95% level, Bonferroni over the candidates considered, excludes the no-effect value) — a term that
    only soaks up the misfit of the worst-fitted tasks is rejected. Exo-driven terms, whose excitation depends
@@ -233,7 +234,7 @@ def _evidence_lines(f: dict) -> list[str]:
     ti = f.get("task_invariance") or {}
     if ti.get("groups"):
         per = ", ".join(f"{g} {_fmt(v, 3)}" for g, v in sorted(ti["groups"].items(), key=lambda kv: -kv[1]))
-        rest = (f"; without {', '.join(ti['dropped'])} (the others precision-weighted): {_fmt(ti['gain_rest'], 3)} "
+        rest = (f"; without {', '.join(ti['dropped'])} (the others weighted by 1/SD): {_fmt(ti['gain_rest'], 3)} "
                 f"CI {_fmt(ti['ci_rest'], 3)}"
                 if ti.get("dropped") else f" ({ti['note']})" if ti.get("note") else "")
         out.append(f"  - gain by {ti['by']}: {per}{rest}")
