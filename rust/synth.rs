@@ -170,5 +170,25 @@ pub fn random_weights(cfg: &SynthConfig) -> Vec<u8> {
         .iter()
         .map(|(name, shape, b)| (name.clone(), TensorView::new(Dtype::F64, shape.clone(), b).unwrap()))
         .collect();
-    safetensors::serialize(views, Some(meta)).unwrap()
+    canonical(safetensors::serialize(views, Some(meta)).unwrap())
+}
+
+/// The same file with its JSON header's keys in sorted order. `safetensors::serialize` takes the metadata
+/// as a `HashMap`, whose iteration order changes from process to process; sorted, the same config gives
+/// the same bytes in every run (a fuzz test's mutation `i` is then the same file each time). Tensor offsets
+/// are relative to the data section, so only the header changes; it is padded with spaces to a multiple of
+/// 8 bytes, as safetensors writes it.
+fn canonical(file: Vec<u8>) -> Vec<u8> {
+    let hl = u64::from_le_bytes(file[..8].try_into().unwrap()) as usize;
+    // serde_json's default map is ordered by key
+    let header: serde_json::Value = serde_json::from_slice(&file[8..8 + hl]).unwrap();
+    let mut h = serde_json::to_vec(&header).unwrap();
+    while h.len() % 8 != 0 {
+        h.push(b' ');
+    }
+    let mut out = Vec::with_capacity(8 + h.len() + file.len() - 8 - hl);
+    out.extend_from_slice(&(h.len() as u64).to_le_bytes());
+    out.extend_from_slice(&h);
+    out.extend_from_slice(&file[8 + hl..]);
+    out
 }
