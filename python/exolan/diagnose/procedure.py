@@ -30,8 +30,8 @@ statistic of the data at hand):
    calisthenics, for instance) helps there and nowhere else. The held-out gain is split by task (by trial
    where the data hold a single task) and the quarter of the groups (at least one) where it is largest is
    set aside. The rest must still show a gain (their groups' gains combined with weights 1/SD, so that every
-   group's z-score counts alike, above 0 beyond sampling and twin-refit noise) and identify the parameter on their own (family-wise:
-   Bonferroni over the candidates considered, since each of them gets this chance). Exo-driven terms,
+   group's z-score counts alike, above 0 beyond sampling and twin-refit noise) and identify the parameter on
+   their own (family-wise: Bonferroni over the candidates considered, since each of them gets this chance). Exo-driven terms,
    whose excitation (the exo torque's rate) is task-dependent, may pass instead by the parameter: the rest
    identify it on their own (one Gauss-Newton step with HAC SE on their held-out residual), every group's θ
    agrees (Cochran's Q, p > 0.05) and the rest's mean gain is above 0 — the more sensitive test for a small
@@ -377,8 +377,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     The quarter of the groups (≥ 1) with the largest gain is set aside. The rule passes by the *gain path*
     when the rest still show a gain: their groups' gains combined with weights 1/SD (each group's SD from its
     block-bootstrap SE and refit noise: a weighted Stouffer test, every group's z-score counts alike), and, as
-    in rule 2, gain − 1.96 √(SE² + σ²) > 0 with σ the twin
-    refits' RMS difference in the same combination; and, given `by_group` (name → mask over the held-out
+    in rule 2, gain − 1.96 √(SE² + σ²) > 0 with σ the twin refits' RMS difference in the same combination; and, given `by_group` (name → mask over the held-out
     samples → `_param_by_group`), the rest must identify the parameter on their own (θ_rest's CI excludes
     the no-effect value; measured: a clean world's hip "damping" of 0.11 N m s/rad passed on a rest gain of
     2.9e-5 [7.5e-6, 5.6e-5] (N m/kg)² while walking's θ was 0.08 ± 0.16 and squat's 0.28 ± 0.36; a planted
