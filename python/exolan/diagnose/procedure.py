@@ -378,8 +378,8 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
     when the rest still show a gain: their groups' gains combined with weights 1/SD (each group's SD from its
     block-bootstrap SE and refit noise: a weighted Stouffer test, every group's z-score counts alike), and, as
     in rule 2, gain − 1.96 √(SE² + σ²) > 0 with σ the twin refits' RMS difference in the same combination;
-    and, given `by_group` (name → mask over the held-out samples → `_param_by_group`), the rest must identify the parameter on their own (θ_rest's CI excludes
-    the no-effect value; measured: a clean world's hip "damping" of 0.11 N m s/rad passed on a rest gain of
+    and, given `by_group` (name → mask over the held-out samples → `_param_by_group`), the rest must
+    identify the parameter on their own (θ_rest's CI excludes the no-effect value; measured: a clean world's hip "damping" of 0.11 N m s/rad passed on a rest gain of
     2.9e-5 [7.5e-6, 5.6e-5] (N m/kg)² while walking's θ was 0.08 ± 0.16 and squat's 0.28 ± 0.36; a planted
     knee damping's walking θ excluded 0 by ten SEs). It passes by the *parameter path* when the rest
     identify the parameter on their own and the groups agree on it: Cochran's Q of the per-group θ (inverse-variance weights,
