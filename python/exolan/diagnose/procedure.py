@@ -24,22 +24,22 @@ statistic of the data at hand):
    a parameter that the fit drives to its boundary is not identified. The parameter's 95% CI (Gauss-Newton
    sandwich with Newey-West/HAC covariance from statsmodels on the training residuals, lags = ACF block
    length) must exclude the "no effect" value.
-5. **A property of the joint, not of a task.** A friction coefficient, a delay or a strap stiffness is the
-   same whatever the user does, so its evidence must not rest on a few tasks: a term that only soaks up the
-   misfit of the tasks the conservative model fits worst (unmodelled pelvis motion in jumps and
-   calisthenics, for instance) helps there and nowhere else. The held-out gain is split by task (by trial
-   where the data hold a single task) and the quarter of the groups (at least one) where it is largest is
-   set aside. The rest must still show a gain (their groups' gains combined with weights 1/SD, so that every
-   group's z-score counts alike, above 0 beyond sampling and twin-refit noise) and identify the parameter on
-   their own (family-wise: Bonferroni over the candidates considered, since each of them gets this chance). Exo-driven terms,
-   whose excitation (the exo torque's rate) is task-dependent, may pass instead by the parameter: the rest
-   identify it on their own (one Gauss-Newton step with HAC SE on their held-out residual), every group's θ
-   agrees (Cochran's Q, p > 0.05) and the rest's mean gain is above 0 — the more sensitive test for a small
-   effect such as a 35 ms delay, whose gain on the other tasks cannot beat a refit's noise. No group may be
-   made worse beyond its sampling and refit noise (Bonferroni over the groups). Data with a single trial cannot be
-   split: the report says so and the rule is skipped. The rule applies to exo-driven terms too: a clean
-   world's hip "delay" resting on jumps and calisthenics beat its future-torque null; its tasks wanted
-   0.02 s (standing) to 0.11 s (calisthenics), Q's p = 3e-6.
+5. **A property of the joint, not of a task.** A friction coefficient, a delay or a strap stiffness is the same
+   whatever the user does, so its evidence must not rest on a few tasks: a term that only soaks up the misfit of
+   the tasks the conservative model fits worst (unmodelled pelvis motion in jumps and calisthenics, for instance)
+   helps there and nowhere else. The held-out gain is split by task (by trial where the data hold a single task)
+   and the quarter of the groups (at least one) where it is largest is set aside. The rest must still show a gain
+   (their groups' gains combined with weights 1/SD, so that every group's z-score counts alike, above 0 beyond
+   sampling and twin-refit noise) and identify the parameter on their own (family-wise: Bonferroni over the
+   candidates considered, since each of them gets this chance). Exo-driven terms, whose excitation (the exo
+   torque's rate) is task-dependent, may pass instead by the parameter: the rest identify it on their own (one
+   Gauss-Newton step with HAC SE on their held-out residual), every group's θ agrees (Cochran's Q, p > 0.05) and
+   the rest's mean gain is above 0 — the more sensitive test for a small effect such as a 35 ms delay, whose gain
+   on the other tasks cannot beat a refit's noise. No group may be made worse beyond its sampling and refit noise
+   (Bonferroni over the groups). Data with a single trial cannot be split: the report says so and the rule is
+   skipped. The rule applies to exo-driven terms too: a clean world's hip "delay" resting on jumps and
+   calisthenics beat its future-torque null; its tasks wanted 0.02 s (standing) to 0.11 s (calisthenics),
+   Q's p = 3e-6.
 6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap) on the same joint, when
    both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`.
    Forward selection: the best remaining term is accepted; every other one must then add a gain beyond the
@@ -374,22 +374,22 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
             twins: list | None = None, param_path: bool = True, family: int = 1) -> dict:
     """Rule 5: the held-out gain per group, and whether the evidence holds beyond the groups where it is largest.
 
-    The quarter of the groups (≥ 1) with the largest gain is set aside. The rule passes by the *gain path*
-    when the rest still show a gain: their groups' gains combined with weights 1/SD (each group's SD from its
-    block-bootstrap SE and refit noise: a weighted Stouffer test, every group's z-score counts alike), and, as
-    in rule 2, gain − 1.96 √(SE² + σ²) > 0 with σ the twin refits' RMS difference in the same combination;
-    and, given `by_group` (name → mask over the held-out samples → `_param_by_group`), the rest must
-    identify the parameter on their own (θ_rest's CI excludes the no-effect value; measured: a clean world's hip "damping" of 0.11 N m s/rad passed on a rest gain of
-    2.9e-5 [7.5e-6, 5.6e-5] (N m/kg)² while walking's θ was 0.08 ± 0.16 and squat's 0.28 ± 0.36; a planted
-    knee damping's walking θ excluded 0 by ten SEs). It passes by the *parameter path* when the rest
-    identify the parameter on their own and the groups agree on it: Cochran's Q of the per-group θ (inverse-variance weights,
-    HAC SEs) against χ² with groups − 1 degrees of freedom (scipy), p > 0.05. The parameter test is the
-    more sensitive one for a small effect: it asks only for the direction the residual wants, while a gain
-    has to beat a refit's noise; a term that lives on some tasks' misfit wants a different θ in each task
-    (measured: a clean world's hip "delay" wanted 0.02 s in standing and 0.11 s in calisthenics, both
-    tight). The rest's gain must still point the right way (mean above 0): where a flexible model already
-    represents a stereotyped motion's pseudo-dissipation (walking) the parameter step agrees with anything
-    while the gain, measured, stays at 0 or below (a clean world's hip "damping" of 0.6 N m s/rad).
+    The quarter of the groups (≥ 1) with the largest gain is set aside. The rule passes by the *gain path* when
+    the rest still show a gain: their groups' gains combined with weights 1/SD (each group's SD from its
+    block-bootstrap SE and refit noise: a weighted Stouffer test, every group's z-score counts alike), and, as in
+    rule 2, gain − 1.96 √(SE² + σ²) > 0 with σ the twin refits' RMS difference in the same combination; and,
+    given `by_group` (name → mask over the held-out samples → `_param_by_group`), the rest must identify the
+    parameter on their own (θ_rest's CI excludes the no-effect value; measured: a clean world's hip "damping" of
+    0.11 N m s/rad passed on a rest gain of 2.9e-5 [7.5e-6, 5.6e-5] (N m/kg)² while walking's θ was 0.08 ± 0.16
+    and squat's 0.28 ± 0.36; a planted knee damping's walking θ excluded 0 by ten SEs). It passes by the
+    *parameter path* when the rest identify the parameter on their own and the groups agree on it: Cochran's Q of
+    the per-group θ (inverse-variance weights, HAC SEs) against χ² with groups − 1 degrees of freedom (scipy),
+    p > 0.05. The parameter test is the more sensitive one for a small effect: it asks only for the direction the
+    residual wants, while a gain has to beat a refit's noise; a term that lives on some tasks' misfit wants a
+    different θ in each task (measured: a clean world's hip "delay" wanted 0.02 s in standing and 0.11 s in
+    calisthenics, both tight). The rest's gain must still point the right way (mean above 0): where a flexible
+    model already represents a stereotyped motion's pseudo-dissipation (walking) the parameter step agrees with
+    anything while the gain, measured, stays at 0 or below (a clean world's hip "damping" of 0.6 N m s/rad).
 
     Identified by the rest means θ_rest's interval at the family-wise 95 % level excludes the no-effect value:
     `family` is the number of (effect, joint) candidates the run considers, Bonferroni, two-sided (z = 2.96 for
