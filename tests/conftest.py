@@ -1,10 +1,46 @@
-"""Shared fixtures: a tiny simulated world that many test files reuse (session scope)."""
+"""Shared fixtures: a tiny simulated world that many test files reuse (session scope); torch's thread count."""
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
 import pytest
+
+
+def threads_per_worker() -> int:
+    """CPU threads per test process: the cores shared among pytest-xdist's workers (`-n`), at most 2.
+
+    Two processes that each run torch on every core oversubscribe them, and OpenMP's spinning threads then
+    slow both down several-fold; one thread each keeps the cores busy without contention.
+    """
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    return max(1, min(2, (os.cpu_count() or 1) // max(workers, 1)))
+
+
+def pytest_configure(config):
+    # before any test module imports torch's users; subprocesses (the CLI tests) inherit OMP_NUM_THREADS
+    n = threads_per_worker()
+    os.environ["OMP_NUM_THREADS"] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The heavy tests first, each followed by one light test, the rest in their order.
+
+    With `--dist load --maxschedchunk 1` (scripts/test.sh) pytest-xdist hands every worker two tests to start
+    with and then one test at a time to whichever worker is free: the heavy tests start on different workers
+    at the beginning instead of one of them starting last while the other workers idle.
+    """
+    heavy = [item for item in items if item.get_closest_marker("heavy") is not None]
+    light = [item for item in items if item.get_closest_marker("heavy") is None]
+    order = []
+    for item in heavy:
+        order += [item] + light[:1]
+        light = light[1:]
+    items[:] = order + light
+
 
 SMALL_WORLD = dict(users=6, tasks=["walk", "stand", "jump_in_place", "squat", "run", "cut"], seconds=4.0, seed=7)
 

@@ -8,17 +8,13 @@ Every hidden-effect world (knee damping, hip Coulomb, exo delay, strap, encoder 
 `pytest -m slow tests/test_diagnose.py`.
 """
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from exolan.diagnose import diagnose, stats
 from exolan.diagnose.synthetic import linear_drive
-
-torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 
 
 # -- statistics -------------------------------------------------------------------------------------
@@ -166,6 +162,7 @@ def _check_world(tmp_path, case, users=2, tasks="walk,squat,calisthenics", secon
 WORLD_SETTINGS = dict(steps_base=1500, steps_refit=400, hidden=64)
 
 
+@pytest.mark.heavy
 def test_clean_world_finds_nothing(tmp_path):
     """A clean exoskeleton world (random seed): "nothing found" — no accepted finding."""
     rep = _check_world(tmp_path, "clean", **WORLD_SETTINGS)
@@ -174,6 +171,7 @@ def test_clean_world_finds_nothing(tmp_path):
     assert "Nothing found" in md
 
 
+@pytest.mark.heavy
 def test_hidden_knee_damping_is_found(tmp_path):
     """Knee viscous damping of random magnitude (1..3 N m s/rad) and seed: named on the knee within 20 %, with
     a positive held-out gain, and nothing else accepted; the evidence is reported per task and subject."""
@@ -187,6 +185,7 @@ def test_hidden_knee_damping_is_found(tmp_path):
     assert (tmp_path / "diag" / "extended.safetensors").exists()
 
 
+@pytest.mark.heavy
 def test_cli_diagnose_with_a_trained_run(tmp_path):
     """`exolan diagnose DATA --model RUN --out DIR`: a trained ExoLaN run (TCN context, pooled per trial) is
     the base; the report says so and is complete. Bad options fail with a clear message."""
@@ -196,7 +195,7 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     root = _world(tmp_path, "clean", seed=5, value=None, users=2, tasks="walk,squat", seconds=12)
     run = tmp_path / "run"
     cfg = tmp_path / "cfg.toml"
-    cfg.write_text("batch_size = 2048\nthreads = 2\n[model]\nhidden = 32\n")
+    cfg.write_text("batch_size = 2048\nthreads = 1\n[model]\nhidden = 32\n")
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "train", "--data", str(root), "--method", "exolan",
                         "--epochs", "2", "--seed", "0", "--config", str(cfg), "--device", "cpu", "--out", str(run)],
                        capture_output=True, text=True)
@@ -225,6 +224,7 @@ def test_hidden_effect_worlds(tmp_path, case):
     _check_world(tmp_path, case, **WORLD_SETTINGS)
 
 
+@pytest.mark.heavy
 def test_real_recordings_without_exoskeleton(tmp_path, real_data):
     """Real human recordings (OpenSim inverse dynamics, 15 tasks, nobody wore an exoskeleton): the diagnosis
     runs end to end on them; every exo-driven term is reported as not testable; nothing else is accepted —
