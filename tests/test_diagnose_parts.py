@@ -279,6 +279,31 @@ def test_fit_weights_follow_the_inverse_misfit_of_each_trial_and_joint(arm):
     np.testing.assert_allclose(wf[tr].mean(0).numpy(), 1.0, rtol=1e-4)
 
 
+def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_delay_frozen(arm, monkeypatch):
+    """A set holding a delay is fitted without the acceleration term (which holds H up, and a held-up H takes
+    part of a delay), then refitted with it while the terms stay frozen; a friction keeps the term throughout."""
+    import exolan.diagnose.procedure as P
+
+    calls = []
+    real = P.train
+
+    def spy(model, flat, steps, **kw):
+        calls.append(dict(w_acc=kw["w_acc"], free=[p.requires_grad for p in model.ext_parameters()],
+                          delay=float(model.delay()[0].detach()) if "actuation_delay" in model.effects else None))
+        return real(model, flat, steps, **kw)
+
+    monkeypatch.setattr(P, "train", spy)
+    s = Settings(steps_base=12, steps_refit=8, hidden=8, verbose=False)
+    m = P._fresh_fit(arm, s, [("actuation_delay", 0)], {"actuation_delay": 0.02})
+    assert [c["w_acc"] for c in calls] == [0.0, 0.0, s.w_acc]
+    assert all(calls[0]["free"]) and all(calls[1]["free"]) and not any(calls[2]["free"])
+    assert float(m.delay()[0].detach()) == calls[2]["delay"]        # the stabilising refit leaves the delay alone
+    assert all(p.requires_grad for p in m.ext_parameters())  # and the terms are free again afterwards
+    calls.clear()
+    P._fresh_fit(arm, s, [("viscous_damping", 0)], {})
+    assert [c["w_acc"] for c in calls] == [s.w_acc, s.w_acc]
+
+
 def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
     """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
     the further term is refitted with the accepted one from scratch, the report carries that comparison, and
