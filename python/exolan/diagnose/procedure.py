@@ -77,10 +77,9 @@ effects such as a 35 ms actuation delay clear rule 2.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -572,14 +571,16 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
     w_acc = 0.0 if confused else s.w_acc
     train(m, flat, s.steps_base, lr=s.lr_base, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed, w_acc=w_acc,
           weighted=False)
-    _refit(m, flat, dataclasses.replace(s, w_acc=w_acc))
+    _refit(m, flat, replace(s, w_acc=w_acc))
     if confused:
         ext = m.ext_parameters()
         for p in ext:
             p.requires_grad_(False)
-        _refit(m, flat, s, seed_offset=len(effects) + 1)
-        for p in ext:
-            p.requires_grad_(True)
+        try:
+            _refit(m, flat, s, seed_offset=len(effects) + 1)
+        finally:
+            for p in ext:
+                p.requires_grad_(True)
     return m
 
 
