@@ -10,7 +10,8 @@ import torch
 
 from exolan.diagnose import stats
 from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, train
-from exolan.diagnose.procedure import Settings, _held_groups, _invariance_reason, _spread, _track_lag
+from exolan.diagnose.procedure import (Settings, _above_noise, _gain, _held_groups, _invariance_reason, _spread,
+                                       _track_lag)
 from exolan.diagnose.synthetic import two_link
 
 
@@ -190,6 +191,29 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
     assert res["hurt"] == []
 
 
+def test_noise_floor_rule_keeps_the_gains_skew_and_adds_the_refit_noise():
+    """Rule 2 is the 2.5 % quantile of the gain's bootstrap replicates plus the refit noise: a right-skewed gain
+    (one stretch of badly fitted data carries most of it) whose percentile CI is above 0 passes where the
+    normal bound gain − 1.96 √(SE² + σ²) is below 0; a refit noise as large as the gain rejects it; a
+    symmetric gain is judged as the normal bound judges it."""
+    rng = np.random.default_rng(0)
+    s = Settings(n_boot=1000)
+    N = 8000
+    e_ref = np.full(N, 1e-3)
+    d = np.full(N, 1e-4) + rng.normal(0, 1e-5, N)
+    d[3000:3200] += 2e-2 * (1 + 0.1 * rng.normal(size=200))
+    g = _gain(e_ref, e_ref - d, s)
+    assert g["ci"][0] > 5e-5 and g["gain"] - 1.96 * g["se"] < 0       # the normal bound would reject it
+    assert _above_noise(g, sigma_r=0.05 * g["se"])
+    assert not _above_noise(g, sigma_r=g["gain"])
+    d = rng.normal(1e-4, 1e-3, N)
+    g = _gain(e_ref, e_ref - d, s)
+    for sigma in (1e-6, g["gain"], 3 * g["gain"]):
+        margin = g["gain"] - 1.96 * math.sqrt(g["se"] ** 2 + sigma ** 2)
+        if abs(margin) > 0.2 * g["se"]:
+            assert _above_noise(g, sigma) == (margin > 0), (sigma, margin)
+
+
 def test_task_invariance_gain_path_counts_the_refit_noise_of_the_rest():
     """A rest gain whose bootstrap CI is above 0 but which a refit with another minibatch order changes as
     much does not pass the gain path (as rule 2 for the whole gain)."""
@@ -312,7 +336,7 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
-    monkeypatch.setattr(P, "_above_noise", lambda g, sigma: True)
+    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0: True)
     spread = P._spread
 
     def open_spread(*a, **k):

@@ -158,9 +158,10 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    lenient screen, since the fitted model has already absorbed part of any effect;
 2. a screened candidate is fitted **jointly** with the whole model (warm start, the same optimiser schedule and
    minibatches as a reference refit of the base model alone); its held-out gain (paired, per sample) must have
-   a circular-block-bootstrap 95% CI (block length from the ACF) above 0, **and** gain − 1.96 √(SE² + σ_r²) > 0,
-   where σ_r is the refit noise (RMS held-out difference between the reference and twin refits that differ
-   only in minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small).
+   a circular-block-bootstrap 95% CI (block length from the ACF) above 0, **and** stay above 0 when the refit
+   noise is added to the bootstrap replicates (their 2.5 % quantile, each plus a draw of N(0, σ_r²)), where σ_r
+   is the refit noise (RMS held-out difference between the reference and twin refits that differ only in
+   minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small).
    Every refit is a weighted least-squares fit, each trial and joint weighted by the base model's inverse
    misfit there, so that the tasks the model fits worst do not pull a joint's parameter; the gains are not
    weighted (they are the torque error you see);

@@ -38,8 +38,11 @@ def circular_block_indices(N: int, block: int, rng: np.random.Generator) -> np.n
 
 
 def bootstrap_mean(x: np.ndarray, n_boot: int = 1000, alpha: float = 0.05, block: int | None = None,
-                   seed: int = 0, ratio_to: np.ndarray | None = None) -> dict:
-    """Mean of x (or mean(x)/mean(ratio_to), paired) with a circular-block-bootstrap percentile CI."""
+                   seed: int = 0, ratio_to: np.ndarray | None = None, draws: bool = False) -> dict:
+    """Mean of x (or mean(x)/mean(ratio_to), paired) with a circular-block-bootstrap percentile CI.
+
+    `draws=True` also returns the bootstrap replicates (`draws`), for a decision that adds another error to
+    the sampling distribution (the refit noise of `procedure._above_noise`)."""
     x = np.asarray(x, dtype=np.float64)
     keep = np.isfinite(x) if ratio_to is None else np.isfinite(x) & np.isfinite(ratio_to)
     x = x[keep]
@@ -53,7 +56,10 @@ def bootstrap_mean(x: np.ndarray, n_boot: int = 1000, alpha: float = 0.05, block
     boots = np.array([stat(circular_block_indices(N, b, rng)) for _ in range(n_boot)])
     est = stat(np.arange(N))
     lo, hi = np.quantile(boots, [alpha / 2, 1 - alpha / 2])
-    return dict(mean=float(est), ci=[float(lo), float(hi)], block=int(b), n=int(N), se=float(boots.std()))
+    out = dict(mean=float(est), ci=[float(lo), float(hi)], block=int(b), n=int(N), se=float(boots.std()))
+    if draws:
+        out["draws"] = boots
+    return out
 
 
 def ljung_box(x: np.ndarray, lags=(10, 50)) -> dict:
