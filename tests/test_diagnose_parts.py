@@ -354,6 +354,46 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
     assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
 
 
+def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path, monkeypatch):
+    """Rule 4 once more in the joint from-scratch fit: an accepted term whose parameter that fit does not
+    identify is reported as ambiguous, and the extended model is fitted again without it (rules forced open
+    so that two terms are accepted; the joint fit's CI of the Coulomb force forced to reach 0)."""
+    import exolan.diagnose.procedure as P
+    from exolan.diagnose import diagnose
+    from exolan.diagnose.synthetic import linear_drive
+
+    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0: True)
+    spread = P._spread
+    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
+    fresh_models, fits = set(), []
+    fresh = P._fresh_fit
+
+    def counted(*a, **k):
+        m = fresh(*a, **k)
+        fits.append(a[2])
+        fresh_models.add(id(m))
+        return m
+
+    monkeypatch.setattr(P, "_fresh_fit", counted)
+    param_ci = P._param_ci
+
+    def vague_coulomb(model, flat, effect, j):
+        out = param_ci(model, flat, effect, j)
+        if effect == "coulomb_friction" and id(model) in fresh_models:
+            out = dict(out, ci=[-1.0, out["estimate"] + 1.0])
+        return out
+
+    monkeypatch.setattr(P, "_param_ci", vague_coulomb)
+    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
+    rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
+                   effects=("viscous_damping", "coulomb_friction"), verbose=False)
+    coulomb = next(e for e in rep["rejected"] if e["effect"] == "coulomb_friction")
+    assert coulomb["status"] == "ambiguous" and "does not identify it" in coulomb["reason"]
+    assert [f["effect"] for f in rep["findings"]] == ["viscous_damping"]
+    assert rep["extended"]["terms"] == ["viscous_damping:x"]
+    assert sorted(map(len, fits)) == [1, 2]       # the pair, then viscous damping alone (cached if seen before)
+
+
 def test_task_invariance_identification_is_family_wise():
     """The rest identify θ when its interval at the family-wise level excludes the no-effect value (Bonferroni
     over the candidates the run considers): a rest θ 2.2 SEs from 0 — a clean world's hip "damping" carried by

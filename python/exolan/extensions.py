@@ -12,7 +12,7 @@ the physics*, each with a parametrisation that enforces its physical sign:
 | actuation_delay    | τ_rec += τ_e(t) − τ_e(t−d), fractional linear shift    | 0 ≤ d ≤ max_delay       |
 | encoder_offset     | physics at q_meas − δ                                  | free sign               |
 | torque_bias        | τ_rec += τ0                                            | free sign               |
-| torque_gain        | τ_rec += (1 − 1/k) τ_e,rec                             | k > 0                   |
+| torque_gain        | τ_rec += (1 − 1/k) τ_e,rec                             | k = e^{0.1 raw} > 0     |
 | strap_compliance   | physics at q_meas − τ_e,app / k (and its derivatives)  | 1/k = softplus(·) ≥ 0   |
 
 Because D is PSD and Fc, Fs ≥ 0, the dissipated power q̇ᵀ(D q̇ + Fc tanh(q̇/ε) + ...) is never negative:
@@ -217,7 +217,8 @@ class ExtendedModel(nn.Module):
         self.delay_raw = start("actuation_delay", self.dt, logit_delay)
         self.offset_raw = start("encoder_offset", 0.0, lambda o: o / 0.01)
         self.bias_raw = start("torque_bias", 0.0, lambda b: b)
-        self.gain_raw = start("torque_gain", 1.0, lambda k: (1.0 - 1.0 / k) / 0.1)
+        # ln k in units of 0.1: k = e^{0.1 raw} > 0 (the sign constraint), a = 1 − 1/k ≈ 0.1 raw near k = 1
+        self.gain_raw = start("torque_gain", 1.0, lambda k: math.log(max(k, 1e-3)) / 0.1)
         # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
         self.compliance_raw = start("strap_compliance", 1000.0, lambda k: sp(max(1.0 / k / 0.01, 1e-4)))
 
@@ -247,8 +248,12 @@ class ExtendedModel(nn.Module):
         return self.bias_raw * self.mask_torque_bias
 
     def gain_term(self) -> torch.Tensor:
-        """a = 1 − 1/k: the recorded exo torque's excess over the applied one, per unit recorded torque."""
-        return 0.1 * self.gain_raw * self.mask_torque_gain
+        """a = 1 − 1/k: the recorded exo torque's excess over the applied one, per unit recorded torque.
+
+        1/k = e^{−0.1 raw}, so a < 1 and k > 0 for every raw value: a fit cannot reach a negative gain (an
+        additive a, unbounded, did: a from-scratch fit in a strap world drove it to 1.014, k = −72, the
+        recorded exo torque ignored)."""
+        return -torch.expm1(-0.1 * self.gain_raw) * self.mask_torque_gain
 
     def compliance(self) -> torch.Tensor:
         """1/k in rad/(N m) (m/N for prismatic joints); 0 where no strap term is active."""
