@@ -162,6 +162,12 @@ def test_recording_terms_bias_and_gain():
     d = ext.inverse(q, q, q, z, fv, te) - base.inverse(q, q, q, z, fv)
     assert torch.allclose(d[:, 0], torch.full((B,), 0.7))
     assert torch.allclose(d[:, 1], (1 - 1 / 1.25) * te[:, 1])
+    # k > 0 whatever the optimiser does to the raw parameter (rule 4's sign constraint)
+    for raw in (-60.0, -30.0, 0.0, 30.0, 60.0):     # k from e^{-6} to e^{6}
+        with torch.no_grad():
+            ext.gain_raw[1] = raw
+        k = ext.estimate("torque_gain", 1)
+        assert k > 0 and (k == pytest.approx(1.0) if raw == 0.0 else True)
 
 
 def test_ext_tensors_follow_the_design_names_and_shapes():
