@@ -41,12 +41,12 @@ statistic of the data at hand):
    skipped. The rule applies to exo-driven terms too: a clean world's hip "delay" resting on jumps and
    calisthenics beat its future-torque null; its tasks wanted 0.02 s (standing) to 0.11 s (calisthenics),
    Q's p = 3e-6.
-6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap) on the same joint, when
-   both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`.
-   Forward selection: the best remaining term is accepted; every other one must then add a gain beyond the
-   noise floor, and pass rule 5, on top of the accepted terms — first with warm starts (the new term
-   starting where the accepted model's residual asks for it, by the post-hoc screen), then, where the base
-   was trained here, confirmed with both models fitted from scratch (`_fresh_fit`): the accepted terms'
+6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap) on the same
+   joint, when both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are
+   `ambiguous`. Forward selection: the best remaining term is accepted; every other one must then add a gain
+   beyond the noise floor, and pass rule 5, on top of the accepted terms — first with warm starts (the new
+   term starting where the accepted model's residual asks for it, by the post-hoc screen), then, where the
+   base was trained here, confirmed with both models fitted from scratch (`_fresh_fit`): the accepted terms'
    warm-started parameters are biased towards "no effect", and what they leave over can look like a term.
 7. **Absorbable** effects (encoder offset, torque bias, payload) are reported as `absorbable` with their
    measured gain, never as findings; backlash has no term and is `ambiguous` if a rival it mimics (Coulomb,
@@ -58,7 +58,9 @@ residual does not help held-out data even after the fact; only the rest are refi
 The extended model holds every accepted term and is refitted *from scratch* (fresh base, the accepted terms
 present from the first step, the reference's total budget): a warm start keeps what the base already
 absorbed of an effect and biases its parameter low, while a fresh fit carries the noise of a whole base fit.
-The joint fit gives the reported estimates; their CIs include the spread to the warm start. The extended
+The joint fit gives the reported estimates; their CIs include the spread to the warm start. A term whose
+parameter the joint fit does not identify (rule 4 again) is reported as `ambiguous`, and the extended model
+is fitted again without it. The extended
 model's held-out torque MSE and rollout errors are compared with the reference's, paired, with
 block-bootstrap CIs.
 
@@ -904,9 +906,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         for e in unconfirmed:
             est, ci = _report_param(e["effect"], joint_fit[id(e)])
             e["status"] = "ambiguous"
+            how = " from scratch" if model is None else ""
             e["reason"] = (f"passed every rule on warm starts (estimate {e['estimate']:.4g}), but the joint fit of all "
-                           f"accepted terms{' from scratch' if model is None else ''} does not identify it: {est:.4g} [{ci[0]:.3g}, {ci[1]:.3g}] "
-                           f"reaches its no-effect value or a bound")
+                           f"accepted terms{how} does not identify it: {est:.4g} [{ci[0]:.3g}, {ci[1]:.3g}] reaches "
+                           f"its no-effect value or a bound")
             _log(s, f"{e['effect']} {e['joint']}: {e['reason']}")
         accepted = [e for e in accepted if e not in unconfirmed]
         ext_model = None
