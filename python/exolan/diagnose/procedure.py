@@ -60,9 +60,8 @@ present from the first step, the reference's total budget): a warm start keeps w
 absorbed of an effect and biases its parameter low, while a fresh fit carries the noise of a whole base fit.
 The joint fit gives the reported estimates; their CIs include the spread to the warm start. A term whose
 parameter the joint fit does not identify (rule 4 again) is reported as `ambiguous`, and the extended model
-is fitted again without it. The extended
-model's held-out torque MSE and rollout errors are compared with the reference's, paired, with
-block-bootstrap CIs.
+is fitted again without it. The extended model's held-out torque MSE and rollout errors are compared with
+the reference's, paired, with block-bootstrap CIs.
 
 Every refit (reference, twins, candidates, nulls, the extended model's last steps) is weighted least
 squares: each trial and joint is weighted by the base model's inverse mean squared training residual there
