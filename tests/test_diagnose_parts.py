@@ -328,27 +328,46 @@ def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_del
     assert [c["w_acc"] for c in calls] == [s.w_acc, s.w_acc]
 
 
-def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
-    """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
-    the further term is refitted with the accepted one from scratch, the report carries that comparison, and
-    the extended model is the cached from-scratch fit of the final set (no third fit)."""
+def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
+    """Diagnose a linear drive (viscous damping planted) for damping and Coulomb friction with rules 2 and 5
+    forced open, so that both terms reach forward selection. Returns the report and the effect sets fitted
+    from scratch; `joint_ci(effect, pci)` may replace the parameter CI of a from-scratch fit."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
     monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0: True)
     spread = P._spread
-
-    def open_spread(*a, **k):
-        return dict(spread(*a, **k), passes=True)
-
-    monkeypatch.setattr(P, "_spread", open_spread)
-    fits = []
+    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
+    fits, fresh_ids = [], set()
     fresh = P._fresh_fit
-    monkeypatch.setattr(P, "_fresh_fit", lambda *a, **k: fits.append(a[2]) or fresh(*a, **k))
+
+    def recorded(*a, **k):
+        m = fresh(*a, **k)
+        fits.append(a[2])
+        fresh_ids.add(id(m))
+        return m
+
+    monkeypatch.setattr(P, "_fresh_fit", recorded)
+    if joint_ci is not None:
+        param_ci = P._param_ci
+
+        def changed(model, flat, effect, j):
+            out = param_ci(model, flat, effect, j)
+            return joint_ci(effect, out) if id(model) in fresh_ids else out
+
+        monkeypatch.setattr(P, "_param_ci", changed)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
     rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
                    effects=("viscous_damping", "coulomb_friction"), verbose=False)
+    return rep, fits
+
+
+def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
+    """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
+    the further term is refitted with the accepted one from scratch, the report carries that comparison, and
+    the extended model is the cached from-scratch fit of the final set (no third fit)."""
+    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch)
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
@@ -358,35 +377,10 @@ def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the
     """Rule 4 once more in the joint from-scratch fit: an accepted term whose parameter that fit does not
     identify is reported as ambiguous, and the extended model is fitted again without it (rules forced open
     so that two terms are accepted; the joint fit's CI of the Coulomb force forced to reach 0)."""
-    import exolan.diagnose.procedure as P
-    from exolan.diagnose import diagnose
-    from exolan.diagnose.synthetic import linear_drive
+    def vague_coulomb(effect, pci):
+        return dict(pci, ci=[-1.0, pci["estimate"] + 1.0]) if effect == "coulomb_friction" else pci
 
-    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0: True)
-    spread = P._spread
-    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
-    fresh_models, fits = set(), []
-    fresh = P._fresh_fit
-
-    def counted(*a, **k):
-        m = fresh(*a, **k)
-        fits.append(a[2])
-        fresh_models.add(id(m))
-        return m
-
-    monkeypatch.setattr(P, "_fresh_fit", counted)
-    param_ci = P._param_ci
-
-    def vague_coulomb(model, flat, effect, j):
-        out = param_ci(model, flat, effect, j)
-        if effect == "coulomb_friction" and id(model) in fresh_models:
-            out = dict(out, ci=[-1.0, out["estimate"] + 1.0])
-        return out
-
-    monkeypatch.setattr(P, "_param_ci", vague_coulomb)
-    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
-    rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
-                   effects=("viscous_damping", "coulomb_friction"), verbose=False)
+    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=vague_coulomb)
     coulomb = next(e for e in rep["rejected"] if e["effect"] == "coulomb_friction")
     assert coulomb["status"] == "ambiguous" and "does not identify it" in coulomb["reason"]
     assert [f["effect"] for f in rep["findings"]] == ["viscous_damping"]

@@ -167,7 +167,7 @@ def test_recording_terms_bias_and_gain():
         with torch.no_grad():
             ext.gain_raw[1] = raw
         k = ext.estimate("torque_gain", 1)
-        assert k > 0 and (k == pytest.approx(1.0) if raw == 0.0 else True)
+        assert k > 0 and k == pytest.approx(math.exp(0.1 * raw), rel=1e-6)
 
 
 def test_ext_tensors_follow_the_design_names_and_shapes():

@@ -369,8 +369,8 @@ def _above_noise(g: dict, sigma_r: float, seed: int = 0) -> bool:
     normal bound −5e-5).
     """
     draws = g.get("draws")
-    if draws is None or not np.all(np.isfinite(draws)):
-        return bool(g["gain"] - 1.96 * math.sqrt(g["se"] ** 2 + sigma_r ** 2) > 0)
+    if draws is None:       # no held-out samples (`stats.bootstrap_mean` returns no replicates): no evidence
+        return False
     noise = np.random.default_rng(seed).normal(0.0, sigma_r, size=len(draws))
     return bool(np.quantile(draws + noise, 0.025) > 0)
 
@@ -880,7 +880,6 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     ro_ext = None
     ext_model = None
     accepted = [e for e in results if e["status"] == "accepted"]
-    joint_fit = {}
     while accepted:
         effs = [(e["effect"], flat.joints.index(e["joint"])) for e in accepted]
         init = dict(acc_init)
