@@ -80,6 +80,9 @@ def test_linear_drive_viscous_friction_layout2(tmp_path, viscous):
         assert f["unit"] == "N s/m"
         assert abs(f["estimate"] - b) <= 0.2 * b, msg
         assert f["heldout_gain"] > 0 and f["ci"][0] <= f["estimate"] <= f["ci"][1]
+        # decided on the misfit-weighted held-out error, reported with the user's unweighted one beside it
+        assert f["decision_gain"]["scale"] == "misfit-weighted" and f["decision_gain"]["ci"][0] > 0
+    assert rep["baseline"]["noise_floor"]["scale"] == "misfit-weighted"
     # the report is complete and readable
     j = json.loads((tmp_path / "diagnosis.json").read_text())
     assert set(j) >= {"baseline", "findings", "rejected", "extended"}

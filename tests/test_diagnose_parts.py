@@ -303,6 +303,26 @@ def test_fit_weights_follow_the_inverse_misfit_of_each_trial_and_joint(arm):
     np.testing.assert_allclose(wf[tr].mean(0).numpy(), 1.0, rtol=1e-4)
 
 
+def test_decisions_weight_held_out_errors_as_the_fits_do_and_users_see_them_unweighted(arm):
+    """`_held_errors`: the user's error is the plain sum over joints of the mass-normalised squared torque
+    error; the decision's weights each joint's error by its trial's fit weight; without weights both agree."""
+    from exolan.diagnose.fit import sq_errors
+    from exolan.diagnose.procedure import _held_errors
+
+    base = make_base(arm, hidden=8, seed=0)
+    held = arm.index("held")
+    e = sq_errors(base, arm, held)
+    w = np.ones_like(e)
+    w[:, 1] = 0.25                                   # knee errors count a quarter
+    w[arm.trial[held].numpy() == 1, 0] = 4.0         # the hip of trial 1 four times
+    user, decision = _held_errors(base, arm, held, w)
+    np.testing.assert_allclose(user, e.sum(1))
+    np.testing.assert_allclose(decision, (e * w).sum(1))
+    assert not np.allclose(user, decision)
+    user0, decision0 = _held_errors(base, arm, held, None)
+    np.testing.assert_array_equal(user0, decision0)
+
+
 def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_delay_frozen(arm, monkeypatch):
     """A set holding a delay is fitted without the acceleration term (which holds H up, and a held-up H takes
     part of a delay), then refitted with it while the terms stay frozen; a friction keeps the term throughout."""

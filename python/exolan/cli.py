@@ -116,7 +116,8 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--joints", default=None, help="comma-separated joint names to test (default: all)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--unweighted", action="store_true",
-                   help="refit without the per-trial misfit weights (ordinary least squares; see exolan.diagnose.fit)")
+                   help="refit and decide without the per-trial misfit weights (ordinary least squares; see "
+                        "exolan.diagnose.fit)")
     p.add_argument("--pelvis-tilt", action="store_true",
                    help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
 

@@ -163,8 +163,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    is the refit noise (RMS held-out difference between the reference and twin refits that differ only in
    minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small).
    Every refit is a weighted least-squares fit, each trial and joint weighted by the base model's inverse
-   misfit there, so that the tasks the model fits worst do not pull a joint's parameter; the gains are not
-   weighted (they are the torque error you see);
+   misfit there, so that the tasks the model fits worst do not pull a joint's parameter; every decision
+   compares held-out errors with the same weights (the "decision gain"), and the unweighted held-out gain
+   (the torque error you see, reported as "held-out gain") must be above 0 too;
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual; a gain also at the
    controller's tracking lag): the future exo torque cannot act now but shares the assistive controller's
@@ -238,7 +239,7 @@ def _evidence_lines(f: dict) -> list[str]:
         rest = (f"; without {', '.join(ti['dropped'])} (the others weighted by 1/SD): {_fmt(ti['gain_rest'], 3)} "
                 f"CI {_fmt(ti['ci_rest'], 3)}"
                 if ti.get("dropped") else f" ({ti['note']})" if ti.get("note") else "")
-        out.append(f"  - gain by {ti['by']}: {per}{rest}")
+        out.append(f"  - gain by {ti['by']}{' (' + ti['scale'] + ')' if ti.get('scale') else ''}: {per}{rest}")
     if ti.get("theta_by_group"):
         th = ", ".join(f"{g} {_fmt(v['estimate'], 3)} ± {_fmt(v['se'], 2)}" for g, v in ti["theta_by_group"].items())
         het = ti.get("heterogeneity") or {}
@@ -269,6 +270,9 @@ def markdown(rep: dict) -> str:
             L.append(f"- **{f['effect']}** on **{f['joint']}**: {_fmt(f['estimate'])} {f['unit']} "
                      f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
+            dg = f.get("decision_gain")
+            if dg:
+                L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}")
             L += _evidence_lines(f)
     else:
         L.append("- **Nothing found**: no candidate effect passed the decision rule on held-out data.")
@@ -288,8 +292,8 @@ def markdown(rep: dict) -> str:
     nf = rep["baseline"].get("noise_floor")
     if nf:
         L.append(f"\nRefit noise σ_r (RMS held-out difference of {len(nf.get('twin_differences', [])) or 1} twin refits "
-                 f"from the reference): {_fmt(nf.get('sigma'), 3)} (N m/kg)²; first twin {_fmt(nf['gain'], 3)} "
-                 f"CI {_fmt(nf['ci'], 3)}.")
+                 f"from the reference, {nf.get('scale', 'unweighted')}): {_fmt(nf.get('sigma'), 3)} (N m/kg)²; "
+                 f"first twin {_fmt(nf['gain'], 3)} CI {_fmt(nf['ci'], 3)}.")
     plots = rep.get("plots", {})
     L.append("")
     L.append("## Plots")
