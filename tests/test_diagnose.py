@@ -123,7 +123,15 @@ WORLD_CASES = {
 }
 
 
-def _world(tmp_path, case, seed, value, users=2, tasks="walk,squat,calisthenics", seconds=16):
+# Four tasks: rule 5 sets the task where a gain is largest aside (a quarter of the tasks, at least one), and
+# walking, a periodic motion, shows a dissipation's gain hardly at all (the flexible model absorbs it along
+# the orbit). With walk, squat and calisthenics the rest was walking and one other task, and a knee damping
+# of 1.3 N m s/rad (seed 12) was missed; with turn added (a paper training task: walking with irregular
+# strides) the same draw was found at 1.14 (measured, notes on issue 7).
+WORLD_TASKS = "walk,squat,calisthenics,turn"
+
+
+def _world(tmp_path, case, seed, value, users=2, tasks=WORLD_TASKS, seconds=16):
     from exolan.world import simulate
 
     root = tmp_path / "world"
@@ -135,7 +143,7 @@ def _world(tmp_path, case, seed, value, users=2, tasks="walk,squat,calisthenics"
     return root
 
 
-def _check_world(tmp_path, case, users=2, tasks="walk,squat,calisthenics", seconds=16, **settings):
+def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **settings):
     rng = np.random.default_rng()
     seed = int(rng.integers(10000))
     value = None
@@ -181,7 +189,7 @@ def test_hidden_knee_damping_is_found(tmp_path):
     rep = _check_world(tmp_path, "knee_damping", **WORLD_SETTINGS)
     assert [(f["effect"], f["joint"]) for f in rep["findings"]] == [("viscous_damping", "knee")], rep["findings"]
     f = rep["findings"][0]
-    assert set(f["task_invariance"]["groups"]) == {"walk", "squat", "calisthenics"}
+    assert set(f["task_invariance"]["groups"]) == set(WORLD_TASKS.split(","))
     assert set(f["subject_gains"]) == {"S01", "S02"}
     ext = rep["extended"]
     assert ext["heldout_gain_ci"][0] > 0 and ext["terms"] == ["viscous_damping:knee"]
