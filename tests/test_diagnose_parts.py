@@ -43,13 +43,59 @@ def test_other_leg_load_is_paired_by_recording_and_normalised_by_weight():
     T = len(trials[0].q)
     np.testing.assert_allclose(flat.f_o[:T].numpy(), trials[1].f_v / (70.0 * 9.81), rtol=1e-5)
     np.testing.assert_allclose(flat.f_o[T:].numpy(), trials[0].f_v / (70.0 * 9.81), rtol=1e-5)
-    assert flat.forces(torch.arange(5)).shape == (5, 5)     # f_v, f_o, the other hip's q, q̇, q̈
+    assert flat.forces(torch.arange(5)).shape == (5, 11)    # f_v, f_o, the other hip's q, q̇, q̈, 5 surge features, x_cop
     np.testing.assert_allclose(flat.kin_o[:T, 1].numpy(), trials[1].qd[:, 0], rtol=1e-5)
     base = make_base(flat, hidden=8)
     assert base.body_load is not None and base.lim is not None
     # a single side has no partner: the base gets no load term
     single = prepare(trials[:1])
     assert not single.has_partner and make_base(single, hidden=8).body_load is None
+
+
+def test_pelvis_surge_sums_both_insoles_and_enters_the_inverse_dynamics_as_mass_accel_times_moment():
+    """(And the centre-of-pressure lever.) Surge features: Σ over both legs of f_v/G ⊙ [1, sin q_h, sin q_h cos q_k, cos q_h sin q_k, x_cop]; the term
+    adds G (features · β) (C ψ(q)) to the inverse dynamics (zero while C = 0) and forward dynamics inverts it."""
+    trials = _leg_pair()
+    rng = np.random.default_rng(3)
+    for t in trials:
+        t.cop = np.stack([rng.uniform(0.0, 0.25, len(t.q)), np.zeros(len(t.q))], 1)
+    flat = prepare(trials)
+    T = len(trials[0].q)
+
+    def phi(t):
+        qh, qk = t.q[:, 0], t.q[:, 1]
+        return (t.f_v / 9.81)[:, None] * np.stack([np.ones(T), np.sin(qh), np.sin(qh) * np.cos(qk),
+                                                   np.cos(qh) * np.sin(qk), t.cop[:, 0]], 1)
+    both = phi(trials[0]) + phi(trials[1])
+    np.testing.assert_allclose(flat.surge[:T].numpy(), both, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(flat.surge[T:].numpy(), both, rtol=1e-4, atol=1e-3)   # one pelvis, both legs
+
+    plain = make_base(flat, hidden=8, seed=2, pelvis_surge=False)
+    surged = make_base(flat, hidden=8, seed=2)
+    assert plain.surge is None and surged.surge is not None
+    surged.load_state_dict(plain.state_dict(), strict=False)
+    b = torch.arange(0, 60)
+    z = plain.z_of(flat.trial[b])
+    args = (flat.q[b], flat.qd[b], flat.qdd[b], z, flat.forces(b))
+    with torch.no_grad():
+        torch.testing.assert_close(surged.inverse(*args), plain.inverse(*args))
+        surged.surge.C.copy_(torch.tensor([[0.05, 0.02, -0.01], [0.0, -0.03, 0.01]]))
+        tau = surged.inverse(*args)
+        qh, qk = flat.q[b, 0], flat.q[b, 1]
+        psi = torch.stack([torch.cos(qh), torch.cos(qh) * torch.cos(qk), torch.sin(qh) * torch.sin(qk)], -1)
+        expect = 9.81 * (flat.surge[b] @ surged.surge.beta)[:, None] * (psi @ surged.surge.C.T)
+        torch.testing.assert_close(tau - plain.inverse(*args), expect, rtol=1e-3, atol=1e-3)
+        qdd = surged.forward_dynamics(flat.q[b], flat.qd[b], tau, z, flat.forces(b))
+        torch.testing.assert_close(qdd, flat.qdd[b], rtol=1e-3, atol=1e-3)
+        # the contact torque's part that follows the centre of pressure: − d ⊙ f_v x_cop (a contact torque)
+        surged.cop_lever.copy_(torch.tensor([0.5, -1.0]))
+        moved = surged.inverse(*args) - tau
+        torch.testing.assert_close(moved, -torch.tensor([0.5, -1.0]) * (flat.f_v[b] * flat.x_cop[b])[:, None],
+                                   rtol=1e-3, atol=1e-3)
+        np.testing.assert_allclose(flat.x_cop[:T].numpy(), trials[0].cop[:, 0], rtol=1e-5)
+    # without a partner there is no pelvis estimate: no term
+    single = make_base(prepare(trials[:1]), hidden=8)
+    assert single.surge is None and single.cop_lever is None
 
 
 def test_pelvis_tilt_is_a_coordinate_shift_by_the_other_hip():

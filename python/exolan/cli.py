@@ -118,6 +118,8 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--unweighted", action="store_true",
                    help="refit and decide without the per-trial misfit weights (ordinary least squares; see "
                         "exolan.diagnose.fit)")
+    p.add_argument("--no-pelvis-surge", action="store_true",
+                   help="leave out the base term for the pelvis's fore-aft acceleration (estimated from both insoles)")
     p.add_argument("--pelvis-tilt", action="store_true",
                    help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
 

@@ -31,7 +31,7 @@ __all__ = ["diagnose", "cli_diagnose", "Settings", "LIBRARY", "CONFUSABLE"]
 QUICK = dict(steps_base=1500, steps_refit=300, hidden=32, n_boot=400, batch=2048)
 
 
-def _pooled_base(model, trials):
+def _pooled_base(model, trials, pelvis_surge: bool = True):
     """A trained DeLaN-based model with z averaged over each trial and frozen."""
     from ..train import context_of
     from .fit import DTYPE, PooledContext
@@ -47,7 +47,7 @@ def _pooled_base(model, trials):
             ok = torch.as_tensor(np.asarray(t.valid, bool))
             zs.append(z[ok].mean(0) if ok.any() and z.shape[-1] else z.mean(0) if z.shape[-1] else z[0])
     # the other leg's load term is active only where a trial's partner (other side) is in the data
-    return PooledContext(model, torch.stack(zs), other_leg_load=True)
+    return PooledContext(model, torch.stack(zs), other_leg_load=True, pelvis_surge=pelvis_surge)
 
 
 def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dict:
@@ -63,7 +63,7 @@ def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dic
         if isinstance(model, (str, Path)):
             from ..train import load_run
             model, _meta = load_run(model)
-        base = _pooled_base(model, trials)
+        base = _pooled_base(model, trials, pelvis_surge=s.pelvis_surge)
     res = run(None, model=base, settings=s, trials_loaded=trials)
     if out is not None:
         out = Path(out)
@@ -113,6 +113,8 @@ def cli_diagnose(args) -> int:
         settings["weighted"] = False
     if getattr(args, "pelvis_tilt", False):
         settings["pelvis_tilt"] = True
+    if getattr(args, "no_pelvis_surge", False):
+        settings["pelvis_surge"] = False
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:

@@ -121,6 +121,7 @@ class Settings:
     weighted: bool = True       # refits weight each trial and joint by the base's inverse misfit (fit.misfit_weights)
     decide_weighted: bool = True  # decisions on the held-out error with the fits' weights (reported gains unweighted)
     pelvis_tilt: bool = False   # base term: the pelvis tilts with the other hip (fit.py docstring; measured there)
+    pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (fit.PelvisSurge)
     verbose: bool = True
 
 
@@ -602,7 +603,8 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
     steps 1.4e-3 against 0.9e-3 (world seed 2329). The frictions are not confused with the inertia: knee
     damping 1.67 with the term and 1.61 without (planted 1.80), hip Coulomb 4.70 and 4.82 (planted 3.93).
     """
-    fresh = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt)
+    fresh = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt,
+                      pelvis_surge=s.pelvis_surge)
     m = ExtendedModel(fresh, flat.n, list(effects), dt=flat.dt, max_delay=s.max_delay, init=dict(init),
                       coupled_damping=False)
     confused = any(eff in INERTIA_CONFUSED for eff, _ in effects)
@@ -638,15 +640,21 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     # 1. base model (slow context), then the reference refit and its twin for the noise floor
     t0 = time.time()
     if model is None:
-        base = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt)
+        base = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt,
+                         pelvis_surge=s.pelvis_surge)
         train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
         base_source = (f"trained here: slow-context DeLaN{' + LIM' if flat.has_insole else ''}"
-                       f"{' + gravity scaled by the other leg load' if base.body_load is not None else ''}, "
+                       f"{' + gravity scaled by the other leg load' if base.body_load is not None else ''}"
+                       f"{' + pelvis fore-aft acceleration from both insoles' if base.surge is not None else ''}"
+                       f"{' + centre-of-pressure lever' if base.cop_lever is not None else ''}, "
                        f"{s.steps_base} steps")
     else:
         base = model
         base_source = ("given model, context pooled per trial" +
-                       (" + gravity scaled by the other leg load" if flat.has_partner else ""))
+                       (" + gravity scaled by the other leg load" if flat.has_partner else "") +
+                       (" + pelvis fore-aft acceleration from both insoles"
+                        if getattr(base, "surge", None) is not None else "") +
+                       (" + centre-of-pressure lever" if getattr(base, "cop_lever", None) is not None else ""))
     _log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
         flat.weight = misfit_weights(base, flat)
