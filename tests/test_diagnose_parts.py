@@ -487,3 +487,14 @@ def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
         t.tau_e[lag:] = 0.3 * t.tau[:-lag] + rng.normal(0, 0.05, (t.tau.shape[0] - lag, 2))
     flat = prepare(trials)
     assert _track_lag(flat, 0) == lag and _track_lag(flat, 1) == lag
+
+
+def test_a_nested_rival_pair_that_held_out_data_cannot_separate_takes_the_simpler_term():
+    """Stribeck (Fs e^{-(v/vs)^2}) is Coulomb friction as vs → ∞: an inseparable pair takes Coulomb; a set
+    that is not nested (delay and damping) has no such choice and stays ambiguous."""
+    from exolan.diagnose.candidates import nested_choice
+
+    c, s = dict(effect="coulomb_friction"), dict(effect="stribeck_friction")
+    assert nested_choice([s, c]) is c and nested_choice([c, s]) is c
+    assert nested_choice([dict(effect="actuation_delay"), dict(effect="viscous_damping")]) is None
+    assert nested_choice([s, dict(effect="viscous_damping")]) is None

@@ -68,6 +68,20 @@ LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
 CONFUSABLE = [("actuation_delay", "viscous_damping"), ("coulomb_friction", "stribeck_friction"),
               ("actuation_delay", "strap_compliance"), ("torque_gain", "strap_compliance")]
 
+# rivals one of which reduces to the other in a limit: an excess static friction that vanishes above vs,
+# Fs e^{−(q̇/vs)²} tanh(q̇/ε), is Coulomb friction as vs → ∞. Where held-out data cannot separate such a pair,
+# the simpler term explains them as well with a parameter fewer (parsimony), so it is the one taken.
+NESTS = {"stribeck_friction": ("coulomb_friction", "vs → ∞")}     # effect: (what it reduces to, in which limit)
+
+
+def nested_choice(group: list[dict]) -> dict | None:
+    """The member of an inseparable rival set (dicts with "effect") that every other member reduces to
+    (`NESTS`), or None when the set is not nested."""
+    for e in group:
+        if all(o is e or NESTS.get(o["effect"], ("",))[0] == e["effect"] for o in group):
+            return e
+    return None
+
 # effects fitted jointly with the model (payload and backlash have no term: reported by rule)
 FITTED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay", "torque_gain",
           "strap_compliance", "encoder_offset", "torque_bias")
