@@ -403,6 +403,7 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
     from exolan.diagnose.synthetic import linear_drive
 
     monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0: True)
+    monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
     spread = P._spread
     monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
     fits, fresh_ids = [], set()
@@ -436,6 +437,8 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
     rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch)
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
+    cg = second[0]["conditional_gain"]     # the user's unweighted gain is reported beside the decision's
+    assert np.isfinite(cg["user_gain"]) and np.isfinite(cg["from_scratch"]["user_gain"])
     assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
 
 

@@ -46,12 +46,12 @@ statistic of the data at hand):
    joint, when both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`
    — unless one reduces to the other in a limit (Stribeck to Coulomb as vs → ∞): then the simpler term is
    taken (parsimony) and the other rejected. Forward selection: the best remaining term is accepted; every
-   other one must then add a gain beyond the noise floor, and pass rule 5, on top of the accepted terms and of
-   the better term of each ambiguous set (the effect is there, only its form is open) — first with warm starts
-   (the new term starting where the accepted model's residual asks for it, by the post-hoc screen), then,
-   where the base was trained here, confirmed with both models fitted from scratch (`_fresh_fit`): the
-   accepted terms' warm-started parameters are biased towards "no effect", and what they leave over can look
-   like a term.
+   other one must then add a gain beyond the noise floor, lower the user's unweighted error (as in rule 1) and
+   pass rule 5, on top of the accepted terms and of the better term of each ambiguous set (the effect is
+   there, only its form is open) — first with warm starts (the new term starting where the accepted model's
+   residual asks for it, by the post-hoc screen), then, where the base was trained here, confirmed with both
+   models fitted from scratch (`_fresh_fit`): the accepted terms' warm-started parameters are biased towards
+   "no effect", and what they leave over can look like a term.
 7. **Absorbable** effects (encoder offset, torque bias, payload) are reported as `absorbable` with their
    measured gain, never as findings; backlash has no term and is `ambiguous` if a rival it mimics (Coulomb,
    strap) is accepted on the same joint, else `rejected`.
@@ -587,6 +587,12 @@ def _refit(model, flat: Flat, s: Settings, seed_offset: int = 1):
 INERTIA_CONFUSED = ("actuation_delay",)
 
 
+def _user_improves(e_before: np.ndarray, e_after: np.ndarray) -> bool:
+    """The user's (unweighted) held-out torque error is lower on average: rule 1's second condition, also
+    asked of a term on top of others."""
+    return bool(np.mean(np.asarray(e_before) - np.asarray(e_after)) > 0)
+
+
 def _fresh_fit(flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
     """The base model with `effects` present from the first step, fitted from scratch: the reference's budget
     and history (its seed, the base's unweighted steps, then the weighted refit) plus the terms.
@@ -883,7 +889,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         # refit the given set once (the reference for the conditional tests), then each remaining one on top
         cur_model = extend(base, flat, given, init=given_init, max_delay=s.max_delay)
         _refit(cur_model, flat, s)
-        cur_e = held_errors(cur_model)[1]
+        cur_u, cur_e = held_errors(cur_model)
         for e in list(pool):
             jj = flat.joints.index(e["joint"])
             # the new term starts where the current model's residual asks for it (the post-hoc screen on
@@ -895,15 +901,16 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             init = _with_init(given_init, start, jj)
             both = extend(base, flat, given + [(e["effect"], jj)], init=init, max_delay=s.max_delay)
             _refit(both, flat, s)
-            e_both = held_errors(both)[1]
+            u_both, e_both = held_errors(both)
             g = _gain(cur_e, e_both, s)
             e["conditional_gain"] = dict(given=[f"{a}:{flat.joints[b]}" for a, b in given], gain=g["gain"], ci=g["ci"],
-                                         start=start, scale=scale)
+                                         start=start, scale=scale, user_gain=float(np.mean(cur_u - u_both)))
             _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: gain {g['gain']:.3g} "
                     f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
             inv = invariance(cur_e - e_both, both, e["effect"], jj)
             e["conditional_gain"]["task_invariance"] = inv
-            passes = _above_noise(g, sigma_r) and inv["passes"]
+            # as rule 1: the user's unweighted torque error must improve too
+            passes = _above_noise(g, sigma_r) and inv["passes"] and _user_improves(cur_u, u_both)
             if passes and model is None:
                 # confirm from scratch: the accepted terms' warm-started parameters are biased towards "no
                 # effect", and a term on the same joint can pass by soaking up what they leave over (a strap
@@ -912,15 +919,16 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 for key in (k_cur, k_both):
                     if key not in fresh_fits:
                         fresh_fits[key] = _fresh_fit(flat, s, key, init)
-                e_cur_f = held_errors(fresh_fits[k_cur])[1]
+                u_cur_f, e_cur_f = held_errors(fresh_fits[k_cur])
                 both_f = fresh_fits[k_both]
-                e_both_f = held_errors(both_f)[1]
+                u_both_f, e_both_f = held_errors(both_f)
                 gf = _gain(e_cur_f, e_both_f, s)
                 invf = invariance(e_cur_f - e_both_f, both_f, e["effect"], jj)
-                e["conditional_gain"]["from_scratch"] = dict(gain=gf["gain"], ci=gf["ci"], task_invariance=invf)
+                e["conditional_gain"]["from_scratch"] = dict(gain=gf["gain"], ci=gf["ci"], task_invariance=invf,
+                                                             user_gain=float(np.mean(u_cur_f - u_both_f)))
                 _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}, both fitted from "
                         f"scratch: gain {gf['gain']:.3g} [{gf['ci'][0]:.3g}, {gf['ci'][1]:.3g}]")
-                passes = _above_noise(gf, sigma_r) and invf["passes"]
+                passes = _above_noise(gf, sigma_r) and invf["passes"] and _user_improves(u_cur_f, u_both_f)
                 inv = invf if not invf["passes"] else inv
             if passes:
                 e["_rank"] = g["gain"]     # rank the rest by what they add
