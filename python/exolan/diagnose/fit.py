@@ -132,6 +132,12 @@ SURGE_FEATURES = 5
 GRAVITY = 9.81
 
 
+def _x_cop(trial, T: int) -> np.ndarray:
+    """(T,) a trial's centre of pressure along the foot (m); 0 where not measured."""
+    cop = getattr(trial, "cop", None)
+    return np.nan_to_num(np.asarray(cop, dtype=np.float64)[:, 0]) if cop is not None else np.zeros(T)
+
+
 def surge_features(trial) -> np.ndarray:
     """(T, 5) one leg's share of the pelvis's fore-aft acceleration features: f_v/G ⊙ φ, in kg.
 
@@ -146,8 +152,7 @@ def surge_features(trial) -> np.ndarray:
         else np.zeros(T)
     qh = q[:, 0]
     qk = q[:, 1] if q.shape[1] > 1 else np.zeros(T)
-    cop = getattr(trial, "cop", None)
-    x_cop = np.nan_to_num(np.asarray(cop, dtype=np.float64)[:, 0]) if cop is not None else np.zeros(T)
+    x_cop = _x_cop(trial, T)
     phi = np.stack([np.ones(T), np.sin(qh), np.sin(qh) * np.cos(qk), np.cos(qh) * np.sin(qk), x_cop], 1)
     return f[:, None] * phi
 
@@ -188,6 +193,16 @@ def _surge_inputs(q: torch.Tensor, f_v: torch.Tensor):
     if f_v.dim() != q.dim() or f_v.shape[-1] < 5 + SURGE_FEATURES:
         return None
     return f_v[..., 5:5 + SURGE_FEATURES]
+
+
+def pelvis_terms(surge, cop_lever, q: torch.Tensor, f_v: torch.Tensor):
+    """The surge torque minus the CoP part of the contact torque, as it enters τ̂ (None without either)."""
+    feats = _surge_inputs(q, f_v) if surge is not None else None
+    out = surge(q, feats) if feats is not None else None
+    ct = cop_torque(cop_lever, q, f_v)
+    if ct is not None:
+        out = -ct if out is None else out - ct
+    return out
 
 
 def cop_torque(d, q: torch.Tensor, f_v: torch.Tensor):
@@ -255,8 +270,7 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
         cols["q"].append(np.asarray(t.q)); cols["qd"].append(np.asarray(t.qd)); cols["qdd"].append(np.asarray(t.qdd))
         cols["tau"].append(np.asarray(t.tau)); cols["tau_e"].append(np.nan_to_num(tau_e))
         cols["tau_e_d"].append(d1); cols["tau_e_dd"].append(d2); cols["f_v"].append(np.nan_to_num(f_v))
-        cop = getattr(t, "cop", None)
-        cols["x_cop"].append(np.nan_to_num(np.asarray(cop, dtype=np.float64)[:, 0]) if cop is not None else np.zeros(T))
+        cols["x_cop"].append(_x_cop(t, T))
         cols["mass"].append(np.full(T, float(t.mass))); cols["valid"].append(valid)
         cols["trial"].append(np.full(T, i)); cols["segment"].append(seg + seg_base); cols["held"].append(held)
         seg_base += int(seg.max()) + 1
@@ -348,14 +362,11 @@ class SlowContextDeLaN(nn.Module):
         if self.body_load is not None and other is not None:
             g = g * (1.0 + self.body_load * other.unsqueeze(-1))
         rest = c + g
-        feats = _surge_inputs(q, f_v) if self.surge is not None else None
-        if feats is not None:
-            rest = rest + self.surge(q, feats)
+        extra = pelvis_terms(self.surge, self.cop_lever, q, f_v)
+        if extra is not None:
+            rest = rest + extra
         if self.lim is not None:
             rest = rest - self.lim.contact_torque(q, z, own)
-        ct = cop_torque(self.cop_lever, q, f_v)
-        if ct is not None:
-            rest = rest - ct
         return H, rest, (None if sh is None else sh[2])
 
     def inverse(self, q, qd, qdd, z, f_v):
@@ -408,11 +419,8 @@ class PooledContext(nn.Module):
         if self.body_load is None or f_v.dim() != q.dim():
             return None
         out = self.body_load * self.model.gravity(q, z) * f_v[..., 1].unsqueeze(-1)
-        feats = _surge_inputs(q, f_v) if self.surge is not None else None
-        if feats is not None:
-            out = out + self.surge(q, feats)
-        ct = cop_torque(self.cop_lever, q, f_v)
-        return out if ct is None else out - ct
+        extra = pelvis_terms(self.surge, self.cop_lever, q, f_v)
+        return out if extra is None else out + extra
 
     @staticmethod
     def _own(q, f_v):

@@ -587,6 +587,14 @@ def _refit(model, flat: Flat, s: Settings, seed_offset: int = 1):
 INERTIA_CONFUSED = ("actuation_delay",)
 
 
+def _with_estimate(init: dict, entry: dict, j: int) -> dict:
+    """`init` with a candidate's single-term estimate as the start of its term at joint j (and Stribeck's vs)."""
+    init = _with_init(init, {entry["effect"]: entry["estimate"]}, j)
+    if entry["effect"] == "stribeck_friction":
+        init = _with_init(init, {"stribeck_vs": entry.get("vs", 0.1)}, j)
+    return init
+
+
 def _user_improves(e_before: np.ndarray, e_after: np.ndarray) -> bool:
     """The user's (unweighted) held-out torque error is lower on average: rule 1's second condition, also
     asked of a term on top of others."""
@@ -877,13 +885,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         else:
             top["status"] = "accepted"
             acc_effects.append((top["effect"], j))
-            acc_init = _with_init(acc_init, {top["effect"]: top["estimate"]}, j)
-            if top["effect"] == "stribeck_friction":
-                acc_init = _with_init(acc_init, {"stribeck_vs": top.get("vs", 0.1)}, j)
+            acc_init = _with_estimate(acc_init, top, j)
         given.append((top["effect"], j))
-        given_init = _with_init(given_init, {top["effect"]: top["estimate"]}, j)
-        if top["effect"] == "stribeck_friction":
-            given_init = _with_init(given_init, {"stribeck_vs": top.get("vs", 0.1)}, j)
+        given_init = _with_estimate(given_init, top, j)
         if not pool:
             break
         # refit the given set once (the reference for the conditional tests), then each remaining one on top
