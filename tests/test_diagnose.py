@@ -164,6 +164,7 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
         return rep
     eff, joint, _ = WORLD_CASES[case]
     assert (eff, joint) in found, msg
+    assert found == [(eff, joint)], f"something besides the planted effect was accepted; {msg}"
     f = next(x for x in rep["findings"] if x["effect"] == eff and x["joint"] == joint)
     assert abs(f["estimate"] - value) <= 0.2 * value, msg
     assert f["heldout_gain"] > 0, msg

@@ -492,6 +492,33 @@ def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
     assert _track_lag(flat, 0) == lag and _track_lag(flat, 1) == lag
 
 
+def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_own_variation():
+    """The gain's third null: the exo torque replaced by its fit on the joint torque's recent past. A lagged
+    share of the joint torque is kept; the controller's own slow variation is what it leaves out."""
+    from exolan.diagnose.procedure import _exo_copy
+
+    trials = _leg_pair(T=3000)
+    rng = np.random.default_rng(2)
+    own = []
+    for t in trials:
+        smooth = np.convolve(rng.normal(0, 10, t.tau.shape[0] + 40), np.hanning(25), "same")[20:-20]
+        wiggle = np.convolve(rng.normal(0, 1.0, t.tau.shape[0] + 200), np.hanning(101), "same")[100:-100]
+        t.tau = np.stack([smooth, smooth[::-1]], 1)
+        t.tau_e = np.zeros_like(t.tau)
+        t.tau_e[5:, 0] = 0.2 * t.tau[:-5, 0]
+        t.tau_e[:, 0] += wiggle
+        t.tau_e[:, 1] = rng.normal(0, 1, t.tau.shape[0])
+        own.append(wiggle)
+    flat = prepare(trials)
+    f = _exo_copy(flat, 0)
+    share = np.concatenate([np.r_[np.zeros(5), 0.2 * t.tau[:-5, 0]] for t in trials])
+    left = flat.tau_e[:, 0].numpy() - f.tau_e[:, 0].numpy()
+    ok = np.concatenate([np.arange(len(t.tau)) >= 40 for t in trials])
+    assert np.corrcoef(f.tau_e[ok, 0].numpy(), share[ok])[0, 1] > 0.95
+    assert np.corrcoef(left[ok], np.concatenate(own)[ok])[0, 1] > 0.9
+    assert torch.equal(f.tau_e[:, 1], flat.tau_e[:, 1]) and torch.equal(flat.tau_e[:, 0], prepare(trials).tau_e[:, 0])
+
+
 def test_a_nested_rival_pair_that_held_out_data_cannot_separate_takes_the_simpler_term():
     """Stribeck (Fs e^{-(v/vs)^2}) is Coulomb friction as vs → ∞: an inseparable pair takes Coulomb; a set
     that is not nested (delay and damping) has no such choice and stays ambiguous."""

@@ -19,7 +19,9 @@ statistic of the data at hand):
    candidate is refitted with the exo torque taken from the *future* — at the lag (≥ 25 ms) where it
    correlates most with the training residual: the future exo torque cannot act on the limb now but shares
    its correlation with the human torque. A gain, which has no lag of its own, must also beat the null at the
-   controller's tracking lag (where the future exo torque copies the recorded joint torque best). Required: the
+   controller's tracking lag (where the future exo torque copies the recorded joint torque best), and the null
+   on the exo torque's copy of the joint torque (`_exo_copy`: its fit on the joint torque's recent past, the
+   controller's own variation removed) — a real gain rescales that variation too. Required: the
    real candidate beats its nulls on held-out data (paired CI of the difference > 0). A delay whose CI reaches
    the largest delay searched is not identified.
 4. **Valid sign and identifiable.** Signs are enforced by the parametrisation (D PSD, Fc, Fs, d, 1/k ≥ 0);
@@ -149,6 +151,33 @@ def _advanced(flat: Flat, k: np.ndarray) -> Flat:
             src = torch.as_tensor(start + np.minimum(t + int(k[j]), T - 1))
             for name in ("tau_e", "tau_e_d", "tau_e_dd"):
                 getattr(f, name)[start:start + T, j] = getattr(flat, name)[src, j]
+        start += T
+    return f
+
+
+def _exo_copy(flat: Flat, j: int, max_lag: int = 40) -> Flat:
+    """The same data with the exo torque of joint j replaced by its copy of the joint's torque: per trial, the
+    least-squares fit (training rows) of the recorded exo torque on the recorded total joint torque 1..max_lag
+    samples earlier. Only ``tau_e`` changes, so it serves terms that read the present exo torque alone (a gain).
+
+    An assistive controller's output is mostly such a copy (it follows the torque the joint needs, with its own
+    lag); what the copy leaves over is the controller's own variation (modulation, wiggle, saturation). A real
+    gain error scales the whole recorded torque, that variation included; a term that only soaks up model
+    error correlated with the joint torque does as well from the copy.
+    """
+    f = copy.copy(flat)
+    f.tau_e = flat.tau_e.clone()
+    train = (~flat.held & flat.valid).numpy()
+    tau = flat.tau[:, j].numpy().astype(np.float64)
+    te = flat.tau_e[:, j].numpy().astype(np.float64)
+    start = 0
+    for T in flat.lengths:
+        t = np.arange(T)
+        X = np.stack([np.ones(T)] + [tau[start + np.maximum(t - l, 0)] for l in range(1, max_lag + 1)], 1)
+        rows = train[start:start + T] & (t >= max_lag)
+        if rows.sum() > 2 * X.shape[1]:
+            coef = np.linalg.lstsq(X[rows], te[start:start + T][rows], rcond=None)[0]
+            f.tau_e[start:start + T, j] = torch.as_tensor(X @ coef, dtype=flat.tau_e.dtype)
         start += T
     return f
 
@@ -791,18 +820,27 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # a gain has no lag of its own: its null also takes the exo torque where it copies the joint torque
             # best (a clean world's knee "gain" 1.47 beat the residual-chosen null at 200 ms, measured)
             lags = sorted({lags[0], _track_lag(flat, j)})
-        nulls = []
+        variants = []
         for lag in lags:
             k = np.zeros(flat.n, dtype=int)
             k[j] = lag
-            adv = _advanced(flat, k)
+            variants.append((_advanced(flat, k), dict(future_lag_s=float(lag * flat.dt)),
+                             f"exo torque {lag} samples in the future"))
+        if entry["effect"] == "torque_gain":
+            # ... and where the exo torque is replaced by its copy of the joint torque: a real gain rescales the
+            # controller's own variation too (measured: a clean world's hip "gain" of 3.26 beat its future-torque
+            # null at 20 ms by 8e-6 [1.9e-6, 1.5e-5] (N m/kg)², base fitted 3000 steps, seed 6394)
+            variants.append((_exo_copy(flat, j), dict(copy_of_joint_torque=True),
+                             "its copy of the joint torque (the controller's own variation removed)"))
+        nulls = []
+        for adv, what, text in variants:
             null = extend(base, adv, [(entry["effect"], j)], init=_screen_init(entry["effect"], entry.get("screen", {})),
                           max_delay=s.max_delay)
             _refit(null, adv, s)
             gn = _gain(held_errors(null, adv)[1], fitted[(entry["effect"], j)][1], s)
-            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], future_lag_s=float(lag * flat.dt)))
-            _log(s, f"null {entry['effect']} {entry['joint']}: beats the same term on exo torque {lag} samples in "
-                    f"the future by {gn['gain']:.3g} [{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
+            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], **what))
+            _log(s, f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {gn['gain']:.3g} "
+                    f"[{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
         entry["null_gain"] = min(nulls, key=lambda x: x["ci"][0])     # the hardest null decides
         entry["passes_null"] = bool(entry["null_gain"]["ci"][0] > 0)
 
@@ -832,7 +870,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             if entry["passes_gain"] and not entry["passes_invariance"]:
                 why.append(_invariance_reason(entry["task_invariance"]))
             if c.needs_exo and entry.get("passes_null") is False:
-                why.append("no better than the same term on future exo torque (assistive torque tracks the human torque)")
+                why.append("no better than the same term on the exo torque's copy of the joint torque (a gain must "
+                           "rescale the controller's own variation too)" if entry["null_gain"].get("copy_of_joint_torque")
+                           else "no better than the same term on future exo torque (assistive torque tracks the human "
+                                "torque)")
             entry["status"] = "rejected"
             entry["reason"] = "; ".join(why)
 

@@ -169,7 +169,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual; a gain also at the
    controller's tracking lag): the future exo torque cannot act now but shares the assistive controller's
-   correlation with the human torque;
+   correlation with the human torque; a gain must also beat the same term on the exo torque's copy of the
+   joint torque (its fit on the joint torque's recent past), since a real gain rescales the controller's own
+   variation as well;
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
