@@ -95,7 +95,7 @@ def test_pelvis_surge_sums_both_insoles_and_enters_the_inverse_dynamics_as_mass_
         np.testing.assert_allclose(flat.x_cop[:T].numpy(), trials[0].cop[:, 0], rtol=1e-5)
     # without a partner there is no pelvis estimate: no term
     single = make_base(prepare(trials[:1]), hidden=8)
-    assert single.surge is None and single.cop_lever is None
+    assert single.surge is None and single.cop_lever is None and not single.lim_cop
 
 
 def test_pelvis_tilt_is_a_coordinate_shift_by_the_other_hip():
@@ -122,7 +122,8 @@ def test_pelvis_tilt_is_a_coordinate_shift_by_the_other_hip():
         q_a, qd_a, qdd_a = (flat.q[b] - sh[:, :1] * e0, flat.qd[b] - sh[:, 1:2] * e0, flat.qdd[b] - sh[:, 2:3] * e0)
         H, c, g = plain.delan.terms(q_a, qd_a, z)
         g = g * (1.0 + plain.body_load * flat.f_o[b, None])
-        expect = (H @ qdd_a.unsqueeze(-1)).squeeze(-1) + c + g - plain.lim.contact_torque(flat.q[b], z, flat.f_v[b])
+        expect = (H @ qdd_a.unsqueeze(-1)).squeeze(-1) + c + g - plain.lim.contact_torque(
+            flat.q[b], plain._lim_context(flat.q[b], z, flat.forces(b)), flat.f_v[b])
         torch.testing.assert_close(tau, expect, rtol=1e-4, atol=1e-4)
 
 

@@ -72,3 +72,37 @@ def test_actuation_delay_matches_the_engine(tmp_path):
                               hist).numpy()
     t_eng = eng.inverse_dynamics(q, qd, qdd, f_v=fv, tau_e=tau_e, tau_app=app_eng)
     assert np.abs(t_eng - t_torch).max() <= 1e-9 * np.abs(t_torch).max()
+
+
+def test_a_lim_that_sees_the_centre_of_pressure_exports_at_its_training_mean(tmp_path):
+    """The diagnosis base's B(q, x_cop, z): the lever arms move with the CoP; the engine (one insole input) gets the
+    LIM held at the stored mean CoP, and agrees with torch there."""
+    from exolan.diagnose.fit import COP_UNIT, SURGE_FEATURES
+
+    torch.manual_seed(3)
+    b = SlowContextDeLaN(("revolute", "revolute"), 3, z_dim=4, hidden=16, lim=True, v_scale=5.0, lim_other=True,
+                         lim_cop=True).double()
+    assert b.lim_cop and b.lim[0].in_features == b.lim.features.dim + 5
+    with torch.no_grad():
+        b.codes.weight.normal_()
+        b.cop_ref.fill_(1.3)
+    ext = ExtendedModel(b, 2, [("viscous_damping", 1)], dt=0.005, init=ALL).double()
+    z = b.codes.weight[2].detach()
+    path, _ = export_extended(ext, tmp_path / "c.safetensors", z)
+    eng = engine.Engine(str(path))
+    B = 32
+    g = torch.Generator().manual_seed(4)
+    q, qd, qdd = (torch.randn(B, 2, generator=g, dtype=torch.float64) for _ in range(3))
+    fv = 300 * torch.rand(B, generator=g, dtype=torch.float64)
+
+    def forces(x_cop):
+        f = torch.zeros(B, 6 + SURGE_FEATURES, dtype=torch.float64)
+        f[:, 0], f[:, -1] = fv, x_cop
+        return f
+    with torch.no_grad():
+        at_mean = ext.inverse(q, qd, qdd, z.expand(B, 4), forces(1.3 * COP_UNIT)).numpy()
+        heel = ext.inverse(q, qd, qdd, z.expand(B, 4), forces(0.02)).numpy()
+    assert np.abs(heel - at_mean).max() > 1e-3 * np.abs(at_mean).max()       # the CoP moves the lever arms
+    t_eng = eng.inverse_dynamics(q.numpy(), qd.numpy(), qdd.numpy(), f_v=fv.numpy())
+    assert np.abs(t_eng - at_mean).max() <= 1e-9 * np.abs(at_mean).max()
+    assert "centre-of-pressure input is held at its training mean (0.130 m)" in eng.metadata["omitted"]

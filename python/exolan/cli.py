@@ -120,6 +120,8 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
                         "exolan.diagnose.fit)")
     p.add_argument("--no-pelvis-surge", action="store_true",
                    help="leave out the base term for the pelvis's fore-aft acceleration (estimated from both insoles)")
+    p.add_argument("--no-lim-cop", action="store_true",
+                   help="the base's insole mapping sees only the joint angles, B(q, z), not the centre of pressure")
     p.add_argument("--pelvis-tilt", action="store_true",
                    help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
 

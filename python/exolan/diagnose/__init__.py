@@ -115,6 +115,8 @@ def cli_diagnose(args) -> int:
         settings["pelvis_tilt"] = True
     if getattr(args, "no_pelvis_surge", False):
         settings["pelvis_surge"] = False
+    if getattr(args, "no_lim_cop", False):
+        settings["lim_cop"] = False
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:

@@ -34,6 +34,18 @@ acceleration switched off, the clean hip's pseudo-damping (0.37 N m s/rad accept
 +24 % bias of a planted hip Coulomb friction (2.78 → 3.46 N m) disappeared (found 2.86) — the motive for the
 term.
 
+Why the insole mapping sees the centre of pressure (`Settings.lim_cop`, on by default, needs a partner: the
+CoP travels in `Flat.forces`): the insoles measure no shear, and the ground force's moment about the hip is
+mostly that of its unmeasured horizontal part (a lever of the hip's height). Where the force aims changes over
+the stance (ahead of the hip in loading, behind it at push-off), and the stance phase is what the CoP's
+heel-to-toe travel tracks; the joint angles alone do not pin it down, and a slow context cannot carry it. So
+the lever arms are B(q, x_cop, z) (one more input to the LIM; 0 force, 0 torque, so it cannot act in swing).
+Measured (clean world seed 6394, 2 users × walk, squat, calisthenics, turn × 16 s, test settings): with B(q, z)
+the reference's held-out MSE was 4.6e-3 (N m/kg)² and a hip "viscous damping" of 0.92 N m s/rad was accepted;
+in the same world generated without the shear force's contact moment the sign of that misfit flipped — it is
+the shear's moment. With B(q, x_cop, z): 1.8e-3 (N m/kg)², the refit noise σ_r 2.1e-5 → 1.5e-6, nothing found.
+The export holds the CoP input at its training mean (the engine has one insole input; the metadata says so).
+
 Optional (`Settings.pelvis_tilt`, off by default): the pelvis tilts with the hips' flexion (the trunk leans
 into squats and landings), so the thigh's angle in an inertial frame is q_hip − τ_t q_hip,other once the
 leg's own share is absorbed into its coordinates. With a partner the base can evaluate its Lagrangian at
@@ -213,9 +225,18 @@ def cop_torque(d, q: torch.Tensor, f_v: torch.Tensor):
     coefficient of about ±1 per joint (the foot's direction; learned from 0). Without it a slow-context base
     must guess the CoP's heel-to-toe travel (some 0.2 m, tens of N m) from q alone. None without the inputs.
     """
-    if d is None or f_v.dim() != q.dim() or f_v.shape[-1] < 6 + SURGE_FEATURES:
+    x = _x_cop_of(q, f_v) if d is not None else None
+    return None if x is None else d * (f_v[..., 0] * x).unsqueeze(-1)
+
+
+COP_UNIT = 0.1      # m: the LIM's centre-of-pressure input is x_cop / COP_UNIT (a foot is some 0.25 m long)
+
+
+def _x_cop_of(q: torch.Tensor, f_v: torch.Tensor):
+    """The own centre of pressure from the insole input of `Flat.forces` (its last column); None without it."""
+    if f_v.dim() != q.dim() or f_v.shape[-1] < 6 + SURGE_FEATURES:
         return None
-    return d * (f_v[..., 0] * f_v[..., 5 + SURGE_FEATURES]).unsqueeze(-1)
+    return f_v[..., 5 + SURGE_FEATURES]
 
 
 def _segments(T: int, dt: float, seg_seconds: float, rng: np.random.Generator, every: int):
@@ -320,10 +341,15 @@ class SlowContextDeLaN(nn.Module):
 
     def __init__(self, joint_types, n_trials: int, z_dim: int = 4, hidden: int = 64, lim: bool = True,
                  v_scale: float = 1.0, lim_scale: float = 0.1, lim_other: bool = False, pelvis_tilt: bool = False,
-                 pelvis_surge: bool = True):
+                 pelvis_surge: bool = True, lim_cop: bool = False):
         super().__init__()
         self.delan = Lagrangian(joint_types, z_dim, hidden, softplus_offset=1e-2, v_scale=v_scale)
-        self.lim = LIM(joint_types, z_dim, 16, lim_scale) if lim else None
+        # the insole mapping's lever arms see the centre of pressure too, B(q, x_cop, z) (module docstring); the
+        # CoP comes with the partner's columns of `Flat.forces`
+        self.lim_cop = bool(lim and lim_other and lim_cop)
+        self.lim = LIM(joint_types, z_dim + int(self.lim_cop), 16, lim_scale) if lim else None
+        # the (scaled) centre of pressure an export holds the LIM at: the loaded training samples' mean (`make_base`)
+        self.register_buffer("cop_ref", torch.zeros(()))
         # the other leg's load scales the effective gravity (module docstring): κ per joint
         self.body_load = nn.Parameter(torch.zeros(len(joint_types))) if lim_other else None
         # the pelvis tilts with the other hip's flexion: the leg's first coordinate seen from an inertial
@@ -366,8 +392,17 @@ class SlowContextDeLaN(nn.Module):
         if extra is not None:
             rest = rest + extra
         if self.lim is not None:
-            rest = rest - self.lim.contact_torque(q, z, own)
+            rest = rest - self.lim.contact_torque(q, self._lim_context(q, z, f_v), own)
         return H, rest, (None if sh is None else sh[2])
+
+    def _lim_context(self, q, z, f_v):
+        """The LIM's context: z, with the own centre of pressure (in units of COP_UNIT) appended (`lim_cop`)."""
+        if not self.lim_cop:
+            return z
+        x = _x_cop_of(q, f_v)
+        if x is None:
+            raise ValueError("this base's insole mapping needs the centre of pressure: pass Flat.forces(idx)")
+        return torch.cat([z.expand(*q.shape[:-1], self.z_dim), (x / COP_UNIT).unsqueeze(-1)], -1)
 
     def inverse(self, q, qd, qdd, z, f_v):
         return self.inverse_inertia(q, qd, qdd, z, f_v)[0]
@@ -443,7 +478,7 @@ class PooledContext(nn.Module):
 
 
 def make_base(flat: Flat, hidden: int = 64, z_dim: int = 4, seed: int = 0, pelvis_tilt: bool = False,
-              pelvis_surge: bool = True) -> SlowContextDeLaN:
+              pelvis_surge: bool = True, lim_cop: bool = True) -> SlowContextDeLaN:
     torch.manual_seed(seed)
     tr = flat.index("train")
     # v_scale: one network unit of ∂V/∂q ≈ the torque spread; lim_scale: lever arms of ~0.1 m (or the
@@ -451,7 +486,11 @@ def make_base(flat: Flat, hidden: int = 64, z_dim: int = 4, seed: int = 0, pelvi
     v_scale = float(flat.tau[tr].std(0).max().clamp(min=1e-3))
     m = SlowContextDeLaN(flat.joint_types, len(flat.lengths), z_dim, hidden, lim=flat.has_insole,
                          v_scale=v_scale, lim_scale=0.1, lim_other=flat.has_insole and flat.has_partner,
-                         pelvis_tilt=pelvis_tilt, pelvis_surge=pelvis_surge)
+                         pelvis_tilt=pelvis_tilt, pelvis_surge=pelvis_surge, lim_cop=lim_cop)
+    if m.lim_cop:
+        loaded = tr[flat.f_v[tr] > 0]
+        if len(loaded):
+            m.cop_ref.fill_(float(flat.x_cop[loaded].mean()) / COP_UNIT)
     return m.to(DTYPE)
 
 
@@ -640,16 +679,19 @@ def to_exo_model(base: SlowContextDeLaN, z: torch.Tensor, joint_names=None):
     k = lag.features.dim
     z = z.detach().to(torch.float64).reshape(-1)
     with torch.no_grad():
-        pairs = [(exo.delan.L, lag.L), (exo.delan.V, lag.V)]
+        pairs = [(exo.delan.L, lag.L, z), (exo.delan.V, lag.V, z)]
         if base.lim is not None:
-            pairs.append((exo.lim, base.lim))
-        for dst, src in pairs:
+            # a LIM that sees the centre of pressure is held at the training mean (the engine has no CoP input)
+            zl = (torch.cat([z, base.cop_ref.detach().to(torch.float64).reshape(1)])
+                  if getattr(base, "lim_cop", False) else z)
+            pairs.append((exo.lim, base.lim, zl))
+        for dst, src, zc in pairs:
             for i, (ld, ls) in enumerate(zip(dst, src)):
                 W = ls.weight.detach().to(torch.float64)
                 b = ls.bias.detach().to(torch.float64)
                 if i == 0:
                     ld.weight.copy_(W[:, :k])
-                    ld.bias.copy_(b + W[:, k:] @ z)
+                    ld.bias.copy_(b + W[:, k:] @ zc)
                 else:
                     ld.weight.copy_(W)
                     ld.bias.copy_(b)
@@ -676,6 +718,9 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
                                             if getattr(ext.base, "tilt", None) is not None else "") +
                          (", and the pelvis's fore-aft acceleration from both insoles and the centre-of-pressure "
                           "lever" if getattr(ext.base, "surge", None) is not None else "") +
+                         (f"; the insole mapping's centre-of-pressure input is held at its training mean "
+                          f"({float(ext.base.cop_ref) * COP_UNIT:.3f} m)" if getattr(ext.base, "lim_cop", False)
+                          else "") +
                          "; this file holds the rest of the model")
     md.update(meta or {})
     return export(twin, path, meta=md), twin

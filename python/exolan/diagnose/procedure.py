@@ -127,6 +127,7 @@ class Settings:
     decide_weighted: bool = True  # decisions on the held-out error with the fits' weights (reported gains unweighted)
     pelvis_tilt: bool = False   # base term: the pelvis tilts with the other hip (fit.py docstring; measured there)
     pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (fit.PelvisSurge)
+    lim_cop: bool = True        # base: the insole mapping's lever arms see the centre of pressure, B(q, x_cop, z)
     verbose: bool = True
 
 
@@ -650,7 +651,7 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
     damping 1.67 with the term and 1.61 without (planted 1.80), hip Coulomb 4.70 and 4.82 (planted 3.93).
     """
     fresh = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt,
-                      pelvis_surge=s.pelvis_surge)
+                      pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
     m = ExtendedModel(fresh, flat.n, list(effects), dt=flat.dt, max_delay=s.max_delay, init=dict(init),
                       coupled_damping=False)
     confused = any(eff in INERTIA_CONFUSED for eff, _ in effects)
@@ -687,12 +688,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     t0 = time.time()
     if model is None:
         base = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt,
-                         pelvis_surge=s.pelvis_surge)
+                         pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
         train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
         base_source = (f"trained here: slow-context DeLaN{' + LIM' if flat.has_insole else ''}"
                        f"{' + gravity scaled by the other leg load' if base.body_load is not None else ''}"
                        f"{' + pelvis fore-aft acceleration from both insoles' if base.surge is not None else ''}"
-                       f"{' + centre-of-pressure lever' if base.cop_lever is not None else ''}, "
+                       f"{' + centre-of-pressure lever' if base.cop_lever is not None else ''}"
+                       f"{' (insole lever arms see the centre of pressure)' if base.lim_cop else ''}, "
                        f"{s.steps_base} steps")
     else:
         base = model
