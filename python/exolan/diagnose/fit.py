@@ -141,6 +141,11 @@ class Flat:
 
 
 SURGE_FEATURES = 5
+# columns of the partnered insole input (`Flat.forces`): f_v, the other leg's load, the other hip's q, q̇, q̈,
+# the surge features, the own centre of pressure
+F_OTHER_HIP = slice(2, 5)
+F_SURGE = slice(5, 5 + SURGE_FEATURES)
+F_X_COP = 5 + SURGE_FEATURES
 GRAVITY = 9.81
 
 
@@ -202,9 +207,9 @@ class PelvisSurge(nn.Module):
 
 def _surge_inputs(q: torch.Tensor, f_v: torch.Tensor):
     """The surge features inside the models' insole input (`Flat.forces`), or None without them."""
-    if f_v.dim() != q.dim() or f_v.shape[-1] < 5 + SURGE_FEATURES:
+    if f_v.dim() != q.dim() or f_v.shape[-1] < F_SURGE.stop:
         return None
-    return f_v[..., 5:5 + SURGE_FEATURES]
+    return f_v[..., F_SURGE]
 
 
 def pelvis_terms(surge, cop_lever, q: torch.Tensor, f_v: torch.Tensor):
@@ -234,9 +239,9 @@ COP_UNIT = 0.1      # m: the LIM's centre-of-pressure input is x_cop / COP_UNIT 
 
 def _x_cop_of(q: torch.Tensor, f_v: torch.Tensor):
     """The own centre of pressure from the insole input of `Flat.forces` (its last column); None without it."""
-    if f_v.dim() != q.dim() or f_v.shape[-1] < 6 + SURGE_FEATURES:
+    if f_v.dim() != q.dim() or f_v.shape[-1] <= F_X_COP:
         return None
-    return f_v[..., 5 + SURGE_FEATURES]
+    return f_v[..., F_X_COP]
 
 
 def _segments(T: int, dt: float, seg_seconds: float, rng: np.random.Generator, every: int):
@@ -373,10 +378,10 @@ class SlowContextDeLaN(nn.Module):
     def _tilt_shift(self, q, f_v):
         """(Δq, Δq̇, Δq̈) of the pelvis tilt that follows the other hip; None without the term or a partner.
         (The fits' acceleration term takes the H of the tilted coordinates, the one the inverse dynamics used.)"""
-        if self.tilt is None or f_v.dim() != q.dim() or f_v.shape[-1] < 5:
+        if self.tilt is None or f_v.dim() != q.dim() or f_v.shape[-1] < F_OTHER_HIP.stop:
             return None
         e0 = torch.zeros(q.shape[-1], dtype=q.dtype); e0[0] = 1.0
-        return tuple(self.tilt * f_v[..., k].unsqueeze(-1) * e0 for k in (2, 3, 4))
+        return tuple(self.tilt * f_v[..., k].unsqueeze(-1) * e0 for k in range(F_OTHER_HIP.start, F_OTHER_HIP.stop))
 
     def _rhs_terms(self, q, qd, z, f_v):
         """H, c + g_eff − B f_v,own: everything on the left of H q̈ + ... = τ except H q̈ (at the tilted
