@@ -171,6 +171,8 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     f = next(x for x in rep["findings"] if x["effect"] == eff and x["joint"] == joint)
     assert abs(f["estimate"] - value) <= 0.2 * value, msg
     assert f["heldout_gain"] > 0, msg
+    if eff == "torque_gain":    # what the report calls detectable agrees with what was detected
+        assert abs(value - 1) > rep["detection_limits"]["torque_gain"][joint]["min_abs_k_minus_1"], msg
     return rep
 
 
@@ -184,6 +186,10 @@ def test_clean_world_finds_nothing(tmp_path):
     assert rep["extended"].get("note", "").startswith("nothing found")
     md = (tmp_path / "diag" / "diagnosis.md").read_text()
     assert "Nothing found" in md
+    # the report says how far from 1 an exo torque gain would have to be to show in these data
+    limits = rep["detection_limits"]["torque_gain"]
+    assert set(limits) == {"hip", "knee"} and all(0 < v["min_abs_k_minus_1"] < 10 for v in limits.values())
+    assert "What these data cannot show" in md
 
 
 @pytest.mark.heavy
@@ -224,6 +230,7 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     assert "report:" in r.stdout
     j = json.loads((out / "diagnosis.json").read_text())
     assert j["baseline"]["source"].startswith("given model") and j["settings"]["weighted"] is False
+    assert "adapted to the data's training segments" in j["baseline"]["source"] and j["settings"]["adapt_model"]
     tested = {(e["effect"], e["joint"]) for e in j["findings"] + j["rejected"]}
     assert {("viscous_damping", "hip"), ("coulomb_friction", "knee"), ("encoder_offset", "hip")} <= tested
     assert not any(e["effect"] == "actuation_delay" for e in j["findings"] + j["rejected"])
@@ -240,6 +247,30 @@ def test_hidden_effect_worlds(tmp_path, case):
     _check_world(tmp_path, case, **WORLD_SETTINGS)
 
 
+@pytest.mark.slow
+def test_a_trained_run_as_base_finds_a_hidden_knee_damping(tmp_path):
+    """`--model RUN` on data with a planted knee damping (random magnitude and seed): a trained ExoLaN run (TCN
+    context) is the base, adapted at its pooled context; the damping is named within 20 % and nothing else."""
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng()
+    seed, value = int(rng.integers(10000)), float(np.round(rng.uniform(1.0, 3.0), 4))
+    root = _world(tmp_path, "knee_damping", seed, value)
+    run = tmp_path / "run"
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text("batch_size = 2048\nthreads = 2\n[model]\nhidden = 64\n")
+    r = subprocess.run([sys.executable, "-m", "exolan.cli", "train", "--data", str(root), "--method", "exolan",
+                        "--epochs", "300", "--seed", "0", "--config", str(cfg), "--device", "cpu", "--out", str(run)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rep = diagnose(root, model=run, out=tmp_path / "diag", quick=True, verbose=False, **WORLD_SETTINGS)
+    msg = f"seed {seed} knee damping {value}: findings {rep['findings']}"
+    print(msg)
+    assert _accepted(rep) == [("viscous_damping", "knee")], msg
+    assert abs(rep["findings"][0]["estimate"] - value) <= 0.2 * value, msg
+
+
 @pytest.mark.heavy
 def test_real_recordings_without_exoskeleton(tmp_path, real_data):
     """Real human recordings (OpenSim inverse dynamics, 15 tasks, nobody wore an exoskeleton): the diagnosis
@@ -250,4 +281,5 @@ def test_real_recordings_without_exoskeleton(tmp_path, real_data):
     exo = [e for e in rep["rejected"] if e["effect"] in ("actuation_delay", "torque_gain", "strap_compliance")]
     assert exo and all("not testable" in e["reason"] for e in exo)
     assert rep["baseline"]["torque_mse"] > 0 and rep["data"]["has_exo"] is False
+    assert rep["detection_limits"] == {"torque_gain": {}}
     assert (tmp_path / "diag" / "diagnosis.md").read_text().startswith("# Diagnosis")

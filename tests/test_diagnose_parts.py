@@ -385,14 +385,18 @@ def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_del
 
     monkeypatch.setattr(P, "train", spy)
     s = Settings(steps_base=12, steps_refit=8, hidden=8, verbose=False)
-    m = P._fresh_fit(arm, s, [("actuation_delay", 0)], {"actuation_delay": 0.02})
+    start = make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
+    m = P._fresh_fit(arm, s, [("actuation_delay", 0)], {"actuation_delay": 0.02}, start)
     assert [c["w_acc"] for c in calls] == [0.0, 0.0, s.w_acc]
     assert all(calls[0]["free"]) and all(calls[1]["free"]) and not any(calls[2]["free"])
     assert float(m.delay()[0].detach()) == calls[2]["delay"]        # the stabilising refit leaves the delay alone
     assert all(p.requires_grad for p in m.ext_parameters())  # and the terms are free again afterwards
     calls.clear()
-    P._fresh_fit(arm, s, [("viscous_damping", 0)], {})
+    P._fresh_fit(arm, s, [("viscous_damping", 0)], {}, start)
     assert [c["w_acc"] for c in calls] == [s.w_acc, s.w_acc]
+    assert all(torch.equal(a, b) for a, b in zip(start.state_dict().values(),
+                                                   make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
+                                                   .state_dict().values()))   # the start itself is not fitted
 
 
 def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
@@ -518,6 +522,82 @@ def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_
     assert np.corrcoef(f.tau_e[ok, 0].numpy(), share[ok])[0, 1] > 0.95
     assert np.corrcoef(left[ok], np.concatenate(own)[ok])[0, 1] > 0.9
     assert torch.equal(f.tau_e[:, 1], flat.tau_e[:, 1]) and torch.equal(flat.tau_e[:, 0], prepare(trials).tau_e[:, 0])
+
+
+def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(monkeypatch):
+    """|k − 1| below which a gain cannot show: set by the exo torque's own variation (not its copy of the joint
+    torque), the model's misfit and the refit noise. Checked against the closed forms of its two regimes."""
+    from exolan.diagnose import procedure as P
+
+    def world(own_sd):
+        trials = _leg_pair(T=6000)
+        rng = np.random.default_rng(3)
+        for t in trials:
+            t.tau = np.stack([np.convolve(rng.normal(0, 10, 6040), np.hanning(25), "same")[20:-20]] * 2, 1)
+            t.tau_e = np.zeros_like(t.tau)
+            t.tau_e[5:, 0] = 0.2 * t.tau[:-5, 0]
+            t.tau_e[:, 0] += own_sd * np.convolve(rng.normal(0, 1, 6200), np.hanning(101), "same")[100:-100] / 7.0
+        return prepare(trials)
+
+    sigma_eps = 0.02                                         # the model's white misfit, N m/kg
+    eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
+    monkeypatch.setattr(P, "predict", lambda model, flat, idx: flat.tau[idx] - eps[idx] * flat.mass[idx, None])
+    s = P.Settings(n_boot=300)
+    lim = {}
+    for own_sd in (1.0, 2.0):
+        flat = world(own_sd)
+        held = flat.index("held")
+        out = P.gain_detection_limit(flat, None, held, None, 0.0, s)
+        assert set(out) == {"hip"}                           # the knee has no exo torque
+        v = out["hip"]
+        own = (flat.tau_e[held, 0] - P._exo_copy(flat, 0).tau_e[held, 0]).numpy() / 70.0
+        P_own = np.mean(own ** 2)
+        # sampling-dominated (σ_r = 0): a = 2·1.96·SE(o ε)/P with SE ≈ rms(o) σ_ε / √N for a white ε
+        expect = 2 * 1.96 * np.sqrt(P_own) * sigma_eps / np.sqrt(len(held)) / P_own
+        assert 0.75 * expect < v["min_abs_k_minus_1"] < 1.33 * expect
+        assert 0.5 < v["copy_share"] < 0.99 and v["rms_own"] < v["rms_exo"]
+        # refit-noise-dominated: a → √(1.96 σ_r / P)
+        big = P.gain_detection_limit(flat, None, held, None, 1e-2, s)["hip"]["min_abs_k_minus_1"]
+        assert abs(big / np.sqrt(1.96 * 1e-2 / P_own) - 1) < 0.05
+        lim[own_sd] = v["min_abs_k_minus_1"]
+    # twice the controller's own variation: half the limit (its copy share alone would not tell)
+    assert 0.4 < lim[2.0] / lim[1.0] < 0.6
+
+
+def test_a_given_runs_base_starts_as_the_run_and_learns_the_centre_of_pressure_part_of_the_contact_torque():
+    """`--model RUN`: the pooled base predicts exactly what the run predicts until the data move it; its added
+    insole correction ΔB(q, x_cop) f_v then takes up a contact torque that depends on the centre of pressure
+    nonlinearly, which the run's B(q, z) and the linear CoP lever cannot (the lever alone is the control)."""
+    from exolan.diagnose.fit import PooledContext, predict, sq_errors
+    from exolan.models import build_model
+
+    torch.manual_seed(0)
+    T = 1500
+    trials = _leg_pair(T=T)
+    run = build_model("delan", lim=True, hidden=16).to(DTYPE)
+    rng = np.random.default_rng(6)
+    for t in trials:
+        x = np.convolve(rng.uniform(-0.05, 0.2, T + 40), np.hanning(9) / np.hanning(9).sum(), "same")[20:-20]
+        t.cop = np.stack([x, np.zeros(T)], 1)
+        args = [torch.as_tensor(v, dtype=DTYPE) for v in (t.q, t.qd, t.qdd)]
+        with torch.no_grad():
+            tau_run = run.inverse(*args, None, torch.as_tensor(t.f_v, dtype=DTYPE)).numpy()
+        lever = 0.04 * np.tanh((x - 0.07) / 0.03)[:, None] * np.array([1.0, -0.5])   # m, odd in the CoP's travel
+        t.tau = tau_run - lever * t.f_v[:, None]
+    flat = prepare(trials)
+    idx = flat.index("all")
+    errs = {}
+    for lim_cop in (False, True):
+        base = PooledContext(copy.deepcopy(run), torch.zeros(2, 0, dtype=DTYPE), other_leg_load=True, lim_cop=lim_cop)
+        assert (base.lim_cop is not None) == lim_cop
+        with torch.no_grad():
+            start = predict(base, flat, idx)
+        with torch.no_grad():
+            own = run.inverse(flat.q[idx], flat.qd[idx], flat.qdd[idx], None, flat.f_v[idx])
+        torch.testing.assert_close(start, own)
+        train(base, flat, 600, lr=3e-3, batch=1024, seed=0, w_acc=0.0)
+        errs[lim_cop] = sq_errors(base, flat, flat.index("held")).sum(1).mean()
+    assert errs[True] < 0.3 * errs[False], errs
 
 
 def test_a_nested_rival_pair_that_held_out_data_cannot_separate_takes_the_simpler_term():

@@ -122,6 +122,9 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="leave out the base term for the pelvis's fore-aft acceleration (estimated from both insoles)")
     p.add_argument("--no-lim-cop", action="store_true",
                    help="the base's insole mapping sees only the joint angles, B(q, z), not the centre of pressure")
+    p.add_argument("--no-adapt-model", action="store_true",
+                   help="with --model: judge the run's networks at their pooled context as given, without fitting "
+                        "them to the data's training segments first")
     p.add_argument("--pelvis-tilt", action="store_true",
                    help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
 

@@ -8,7 +8,8 @@ API for the pipeline::
 
 `data`: a dataset path (layout 1 or 2, read by `exolan.data.load`) or a list of `Trial`s. `model`: None
 (a slow-context DeLaN + LIM is trained on the training segments first), a run directory, or a DeLaN-based
-`ExoModel`; a given model's context is pooled per trial (a slow context, DIAGNOSIS_PITFALLS.md). `out`:
+`ExoModel`; a given model's context is pooled per trial (a slow context, DIAGNOSIS_PITFALLS.md) and the model
+is fitted to the training segments at that context first (`adapt_model=False`: judged as given). `out`:
 directory for diagnosis.json, diagnosis.md, the plots and (when something is accepted) the extended
 model's `ext.*` tensors. `quick=True` uses short fits (tests); keyword `settings` overrides any
 `procedure.Settings` field.
@@ -31,8 +32,8 @@ __all__ = ["diagnose", "cli_diagnose", "Settings", "LIBRARY", "CONFUSABLE"]
 QUICK = dict(steps_base=1500, steps_refit=300, hidden=32, n_boot=400, batch=2048)
 
 
-def _pooled_base(model, trials, pelvis_surge: bool = True):
-    """A trained DeLaN-based model with z averaged over each trial and frozen."""
+def _pooled_base(model, trials, pelvis_surge: bool = True, lim_cop: bool = True):
+    """A trained DeLaN-based model with z averaged over each trial: the trials' starting codes (`fit.PooledContext`)."""
     from ..train import context_of
     from .fit import DTYPE, PooledContext
 
@@ -47,7 +48,7 @@ def _pooled_base(model, trials, pelvis_surge: bool = True):
             ok = torch.as_tensor(np.asarray(t.valid, bool))
             zs.append(z[ok].mean(0) if ok.any() and z.shape[-1] else z.mean(0) if z.shape[-1] else z[0])
     # the other leg's load term is active only where a trial's partner (other side) is in the data
-    return PooledContext(model, torch.stack(zs), other_leg_load=True, pelvis_surge=pelvis_surge)
+    return PooledContext(model, torch.stack(zs), other_leg_load=True, pelvis_surge=pelvis_surge, lim_cop=lim_cop)
 
 
 def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dict:
@@ -63,7 +64,7 @@ def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dic
         if isinstance(model, (str, Path)):
             from ..train import load_run
             model, _meta = load_run(model)
-        base = _pooled_base(model, trials, pelvis_surge=s.pelvis_surge)
+        base = _pooled_base(model, trials, pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
     res = run(None, model=base, settings=s, trials_loaded=trials)
     if out is not None:
         out = Path(out)
@@ -117,6 +118,8 @@ def cli_diagnose(args) -> int:
         settings["pelvis_surge"] = False
     if getattr(args, "no_lim_cop", False):
         settings["lim_cop"] = False
+    if getattr(args, "no_adapt_model", False):
+        settings["adapt_model"] = False
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:

@@ -259,6 +259,26 @@ def _evidence_lines(f: dict) -> list[str]:
     return out
 
 
+def _limit_lines(limits: dict) -> list[str]:
+    """The 'What these data cannot show' section: the torque gain's detection limit per joint."""
+    gain = limits.get("torque_gain") or {}
+    if not gain:
+        return []
+    L = ["## What these data cannot show",
+         "A torque gain error k shows only through the controller's own variation: the part of the exo torque "
+         "that copies the joint torque is absorbed by a base that predicts the joint torque from the motion "
+         "(rule 3's copy null). Gains closer to 1 than the limit below would not clear the sampling and refit "
+         "noise of these data (an estimate at the base's present misfit; `procedure.gain_detection_limit`).", "",
+         "| joint | exo torque rms [N m] | share that copies the joint torque | own variation rms [N m] | "
+         "detectable beyond |k − 1| ≈ |",
+         "|---|---|---|---|---|"]
+    for j, v in gain.items():
+        L.append(f"| {j} | {_fmt(v['rms_exo'], 3)} | {100 * v['copy_share']:.0f} % | {_fmt(v['rms_own'], 3)} | "
+                 f"{_fmt(v['min_abs_k_minus_1'], 2)} |")
+    L.append("")
+    return L
+
+
 def markdown(rep: dict) -> str:
     d = rep.get("data", {})
     findings = rep["findings"]
@@ -324,6 +344,7 @@ def markdown(rep: dict) -> str:
                  f"{e.get('unit', '')} | {_fmt(e.get('heldout_gain'), 3)} {_fmt(e.get('heldout_gain_ci'), 3)} | "
                  f"{e.get('reason', '')} |")
     L.append("")
+    L += _limit_lines(rep.get("detection_limits") or {})
     L.append("## How it was decided")
     L.append(RULE_TEXT)
     L.append("")
