@@ -188,7 +188,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    the other in a limit, Stribeck to Coulomb as vs → ∞, the simpler is taken); a further term must add held-out
    gain beyond the noise floor (and lower the unweighted error) on top of the already accepted ones and of the
    better term of each ambiguous set (forward selection), confirmed with both models fitted from scratch where
-   the base was trained here;
+   the base was fitted here; the extended model with all accepted terms must beat the base on held-out data as
+   in rule 1, or its terms are `ambiguous`;
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
 
 
@@ -270,7 +271,7 @@ def _limit_lines(limits: dict) -> list[str]:
          "(rule 3's copy null). Gains closer to 1 than the limit below would not clear the sampling and refit "
          "noise of these data (an estimate at the base's present misfit; `procedure.gain_detection_limit`).", "",
          "| joint | exo torque rms [N m] | share that copies the joint torque | own variation rms [N m] | "
-         "detectable beyond |k − 1| ≈ |",
+         "a gain shows beyond k = 1 ± |",
          "|---|---|---|---|---|"]
     for j, v in gain.items():
         L.append(f"| {j} | {_fmt(v['rms_exo'], 3)} | {100 * v['copy_share']:.0f} % | {_fmt(v['rms_own'], 3)} | "
