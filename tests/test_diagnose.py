@@ -206,6 +206,21 @@ def test_hidden_knee_damping_is_found(tmp_path):
     assert (tmp_path / "diag" / "extended.safetensors").exists()
 
 
+def _train_run(tmp_path, root, epochs: int, hidden: int, threads: int):
+    """An `exolan train --method exolan` run on the world at root (the CLI, as a user would); its directory."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "run"
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(f"batch_size = 2048\nthreads = {threads}\n[model]\nhidden = {hidden}\n")
+    r = subprocess.run([sys.executable, "-m", "exolan.cli", "train", "--data", str(root), "--method", "exolan",
+                        "--epochs", str(epochs), "--seed", "0", "--config", str(cfg), "--device", "cpu",
+                        "--out", str(run)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    return run
+
+
 @pytest.mark.heavy
 def test_cli_diagnose_with_a_trained_run(tmp_path):
     """`exolan diagnose DATA --model RUN --out DIR`: a trained ExoLaN run (TCN context, pooled per trial) is
@@ -214,13 +229,7 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     import sys
 
     root = _world(tmp_path, "clean", seed=5, value=None, users=2, tasks="walk,squat", seconds=12)
-    run = tmp_path / "run"
-    cfg = tmp_path / "cfg.toml"
-    cfg.write_text("batch_size = 2048\nthreads = 1\n[model]\nhidden = 32\n")
-    r = subprocess.run([sys.executable, "-m", "exolan.cli", "train", "--data", str(root), "--method", "exolan",
-                        "--epochs", "2", "--seed", "0", "--config", str(cfg), "--device", "cpu", "--out", str(run)],
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    run = _train_run(tmp_path, root, epochs=2, hidden=32, threads=1)
     out = tmp_path / "diag"
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "diagnose", str(root), "--model", str(run), "--out",
                         str(out), "--quick", "--effects", "viscous_damping,coulomb_friction,encoder_offset",
@@ -251,19 +260,10 @@ def test_hidden_effect_worlds(tmp_path, case):
 def test_a_trained_run_as_base_finds_a_hidden_knee_damping(tmp_path):
     """`--model RUN` on data with a planted knee damping (random magnitude and seed): a trained ExoLaN run (TCN
     context) is the base, adapted at its pooled context; the damping is named within 20 % and nothing else."""
-    import subprocess
-    import sys
-
     rng = np.random.default_rng()
     seed, value = int(rng.integers(10000)), float(np.round(rng.uniform(1.0, 3.0), 4))
     root = _world(tmp_path, "knee_damping", seed, value)
-    run = tmp_path / "run"
-    cfg = tmp_path / "cfg.toml"
-    cfg.write_text("batch_size = 2048\nthreads = 2\n[model]\nhidden = 64\n")
-    r = subprocess.run([sys.executable, "-m", "exolan.cli", "train", "--data", str(root), "--method", "exolan",
-                        "--epochs", "300", "--seed", "0", "--config", str(cfg), "--device", "cpu", "--out", str(run)],
-                       capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    run = _train_run(tmp_path, root, epochs=300, hidden=64, threads=2)
     rep = diagnose(root, model=run, out=tmp_path / "diag", quick=True, verbose=False, **WORLD_SETTINGS)
     msg = f"seed {seed} knee damping {value}: findings {rep['findings']}"
     print(msg)
