@@ -246,6 +246,11 @@ def cop_torque(d, q: torch.Tensor, f_v: torch.Tensor):
 COP_UNIT = 0.1      # m: the LIM's centre-of-pressure input is x_cop / COP_UNIT (a foot is some 0.25 m long)
 
 
+def cop_context(q: torch.Tensor, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """An insole mapping's context with the centre of pressure: [z; x_cop / COP_UNIT], z broadcast over the rows."""
+    return torch.cat([z.expand(*q.shape[:-1], z.shape[-1]), (x / COP_UNIT).unsqueeze(-1)], -1)
+
+
 def _x_cop_of(q: torch.Tensor, f_v: torch.Tensor):
     """The own centre of pressure from the insole input of `Flat.forces` (its last column); None without it."""
     if f_v.dim() != q.dim() or f_v.shape[-1] <= F_X_COP:
@@ -416,7 +421,7 @@ class SlowContextDeLaN(nn.Module):
         x = _x_cop_of(q, f_v)
         if x is None:
             raise ValueError("this base's insole mapping needs the centre of pressure: pass Flat.forces(idx)")
-        return torch.cat([z.expand(*q.shape[:-1], self.z_dim), (x / COP_UNIT).unsqueeze(-1)], -1)
+        return cop_context(q, z, x)
 
     def inverse(self, q, qd, qdd, z, f_v):
         return self.inverse_inertia(q, qd, qdd, z, f_v)[0]
@@ -487,8 +492,7 @@ class PooledContext(nn.Module):
         out = out if extra is None else out + extra
         x = _x_cop_of(q, f_v) if self.lim_cop is not None else None
         if x is not None:
-            zc = torch.cat([z.expand(*q.shape[:-1], z.shape[-1]), (x / COP_UNIT).unsqueeze(-1)], -1)
-            out = out - self.lim_cop.contact_torque(q, zc, f_v[..., 0])
+            out = out - self.lim_cop.contact_torque(q, cop_context(q, z, x), f_v[..., 0])
         return out
 
     @staticmethod

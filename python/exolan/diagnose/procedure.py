@@ -69,8 +69,8 @@ absorbed of an effect and biases its parameter low, while a fresh fit carries th
 The joint fit gives the reported estimates; their CIs include the spread to the warm start. A term whose
 parameter the joint fit does not identify (rule 4 again) is reported as `ambiguous`, and the extended model
 is fitted again without it. An extended model that does not beat the reference on held-out data (rule 1
-again) confirms none of its terms: they are reported as `ambiguous`. The extended model's held-out torque MSE and rollout errors are compared with
-the reference's, paired, with block-bootstrap CIs.
+again) confirms none of its terms: they are reported as `ambiguous`. The extended model's held-out torque MSE
+and rollout errors are compared with the reference's, paired, with block-bootstrap CIs.
 
 Every refit (reference, twins, candidates, nulls, the extended model's last steps) is weighted least
 squares: each trial and joint is weighted by the base model's inverse mean squared training residual there
@@ -727,11 +727,17 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
 
     # 1. base model (slow context), then the reference refit and its twin for the noise floor
     t0 = time.time()
-    if model is None:
-        base = make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt,
-                         pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
-        base_start = copy.deepcopy(base)     # the base before its fit: `_fresh_fit` starts the extended models there
+    base = model if model is not None else make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed,
+                                                      pelvis_tilt=s.pelvis_tilt, pelvis_surge=s.pelvis_surge,
+                                                      lim_cop=s.lim_cop)
+    # the base before its fit: `_fresh_fit` starts the extended models there (None, a model judged as given:
+    # extended models are warm starts). A given run's networks at a per-trial code, and the terms the diagnosis
+    # adds, are fitted with the base's own schedule (`fit.PooledContext`; at the refits' smaller step the
+    # reference's held-out MSE stayed 1.6x higher, 3.1e-3 vs 2.0e-3 (N m/kg)², measured on one world)
+    base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
+    if base_start is not None:
         train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+    if model is None:
         base_source = (f"trained here: slow-context DeLaN{' + LIM' if flat.has_insole else ''}"
                        f"{' + gravity scaled by the other leg load' if base.body_load is not None else ''}"
                        f"{' + pelvis fore-aft acceleration from both insoles' if base.surge is not None else ''}"
@@ -739,13 +745,6 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                        f"{' (insole lever arms see the centre of pressure)' if base.lim_cop else ''}, "
                        f"{s.steps_base} steps")
     else:
-        base = model
-        base_start = copy.deepcopy(base) if s.adapt_model else None   # None: extended models are warm starts
-        if s.adapt_model:
-            # the run's networks at a per-trial code, and the terms the diagnosis adds, fitted to the training
-            # segments first, with the base's own schedule (`fit.PooledContext`; at the refits' smaller step the
-            # reference's held-out MSE stayed 1.6x higher, 3.1e-3 vs 2.0e-3 (N m/kg)², measured on one world)
-            train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
         base_source = ("given model, context pooled per trial" +
                        (" + gravity scaled by the other leg load" if flat.has_partner else "") +
                        (" + pelvis fore-aft acceleration from both insoles"
@@ -1108,7 +1107,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             accepted, ext_model = [], None
     if accepted:
         extended, ro_ext = _metrics(ext_model, flat, s, starts)
-        g = _gain(e_ref_user, held_errors(ext_model)[0], s)     # the user's gain: unweighted
+        g = _gain(e_ref_user, u_ext, s)     # the user's gain: unweighted
         extended["terms"] = [f"{a}:{flat.joints[j]}" for a, j in effs]
         extended["heldout_gain"] = g["gain"]; extended["heldout_gain_ci"] = g["ci"]
         extended["relative_gain"] = g["rel"]; extended["relative_gain_ci"] = g["rel_ci"]
