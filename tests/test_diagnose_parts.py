@@ -500,7 +500,7 @@ def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
 def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_own_variation():
     """The gain's third null: the exo torque replaced by its fit on the joint torque's recent past. A lagged
     share of the joint torque is kept; the controller's own slow variation is what it leaves out."""
-    from exolan.diagnose.procedure import _exo_copy
+    from exolan.diagnose.fit import exo_copy
 
     trials = _leg_pair(T=3000)
     rng = np.random.default_rng(2)
@@ -515,7 +515,7 @@ def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_
         t.tau_e[:, 1] = rng.normal(0, 1, t.tau.shape[0])
         own.append(wiggle)
     flat = prepare(trials)
-    f = _exo_copy(flat, 0)
+    f = exo_copy(flat, 0)
     share = np.concatenate([np.r_[np.zeros(5), 0.2 * t.tau[:-5, 0]] for t in trials])
     left = flat.tau_e[:, 0].numpy() - f.tau_e[:, 0].numpy()
     ok = np.concatenate([np.arange(len(t.tau)) >= 40 for t in trials])
@@ -550,7 +550,7 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
         out = P.gain_detection_limit(flat, None, held, None, 0.0, s)
         assert set(out) == {"hip"}                           # the knee has no exo torque
         v = out["hip"]
-        own = (flat.tau_e[held, 0] - P._exo_copy(flat, 0).tau_e[held, 0]).numpy() / 70.0
+        own = (flat.tau_e[held, 0] - P.exo_copy(flat, 0).tau_e[held, 0]).numpy() / 70.0
         P_own = np.mean(own ** 2)
         # sampling-dominated (σ_r = 0): a = 2·1.96·SE(o ε)/P with SE ≈ rms(o) σ_ε / √N for a white ε
         expect = 2 * 1.96 * np.sqrt(P_own) * sigma_eps / np.sqrt(len(held)) / P_own
@@ -562,6 +562,36 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
         lim[own_sd] = v["min_abs_k_minus_1"]
     # twice the controller's own variation: half the limit (its copy share alone would not tell)
     assert 0.4 < lim[2.0] / lim[1.0] < 0.6
+
+
+def test_the_gains_screen_regresses_on_the_controllers_own_variation_that_the_base_leaves(monkeypatch):
+    """A fitted base has absorbed (k − 1) times the exo torque's copy of the joint torque; its residual holds
+    (k − 1) times the controller's own variation only. Regressed on the whole exo torque (90 % copy here) the
+    post-hoc θ would shrink to the own share; the screen's own-variation feature recovers it."""
+    from exolan.diagnose import screen as S
+
+    trials = _leg_pair(T=6000)
+    rng = np.random.default_rng(5)
+    for t in trials:
+        t.tau = np.stack([np.convolve(rng.normal(0, 10, 6040), np.hanning(25), "same")[20:-20]] * 2, 1)
+        t.tau_e = np.zeros_like(t.tau)
+        t.tau_e[5:, 0] = 0.3 * t.tau[:-5, 0]
+        t.tau_e[:, 0] += 2.0 * np.convolve(rng.normal(0, 1, 6200), np.hanning(101), "same")[100:-100] / 7.0
+    flat = prepare(trials)
+    own = flat.tau_e[:, 0] - S.exo_copy(flat, 0).tau_e[:, 0]
+    assert 0.02 < float(own.var() / flat.tau_e[:, 0].var()) < 0.2
+    theta = 0.4                                              # k = 1/(1 − θ) ≈ 1.67
+    eps = torch.as_tensor(np.random.default_rng(6).normal(0, 0.01, (12000, 2)), dtype=torch.float32)
+    resid = eps * flat.mass[:, None]
+    resid[:, 0] += theta * own
+    monkeypatch.setattr(S, "predict", lambda model, f, idx: f.tau[idx] - resid[idx])
+    sc = S.screen(None, flat, "torque_gain", 0, n_boot=200)
+    assert sc["passes"] and sc.get("own_variation") is True and sc["ci"][0] > 0
+    assert abs(sc["theta"] - theta) < 0.1 * theta
+    # the whole exo torque alone: θ diluted to the own share, far from the planted one
+    whole = S.features(None, flat, flat.index("train"), "torque_gain", 0)[0][1][:, 0]
+    r_tr = resid[flat.index("train"), 0].numpy()
+    assert abs(float(whole @ r_tr / (whole @ whole))) < 0.3 * theta
 
 
 def test_a_given_runs_base_starts_as_the_run_and_learns_the_centre_of_pressure_part_of_the_contact_torque():

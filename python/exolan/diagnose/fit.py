@@ -351,6 +351,33 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
     return flat
 
 
+def exo_copy(flat: Flat, j: int, max_lag: int = 40) -> Flat:
+    """The same data with the exo torque of joint j replaced by its copy of the joint's torque: per trial, the
+    least-squares fit (training rows) of the recorded exo torque on the recorded total joint torque 1..max_lag
+    samples earlier. Only ``tau_e`` changes, so it serves terms that read the present exo torque alone (a gain).
+
+    An assistive controller's output is mostly such a copy (it follows the torque the joint needs, with its own
+    lag); what the copy leaves over is the controller's own variation (modulation, wiggle, saturation). A real
+    gain error scales the whole recorded torque, that variation included; a term that only soaks up model
+    error correlated with the joint torque does as well from the copy.
+    """
+    f = copy.copy(flat)
+    f.tau_e = flat.tau_e.clone()
+    train = (~flat.held & flat.valid).numpy()
+    tau = flat.tau[:, j].numpy().astype(np.float64)
+    te = flat.tau_e[:, j].numpy().astype(np.float64)
+    start = 0
+    for T in flat.lengths:
+        t = np.arange(T)
+        X = np.stack([np.ones(T)] + [tau[start + np.maximum(t - l, 0)] for l in range(1, max_lag + 1)], 1)
+        rows = train[start:start + T] & (t >= max_lag)
+        if rows.sum() > 2 * X.shape[1]:
+            coef = np.linalg.lstsq(X[rows], te[start:start + T][rows], rcond=None)[0]
+            f.tau_e[start:start + T, j] = torch.as_tensor(X @ coef, dtype=flat.tau_e.dtype)
+        start += T
+    return f
+
+
 class SlowContextDeLaN(nn.Module):
     """DeLaN (+ LIM) with a learned constant context code per trial: z cannot carry q̇ within a step.
 

@@ -20,7 +20,7 @@ statistic of the data at hand):
    correlates most with the training residual: the future exo torque cannot act on the limb now but shares
    its correlation with the human torque. A gain, which has no lag of its own, must also beat the null at the
    controller's tracking lag (where the future exo torque copies the recorded joint torque best), and the null
-   on the exo torque's copy of the joint torque (`_exo_copy`: its fit on the joint torque's recent past, the
+   on the exo torque's copy of the joint torque (`exo_copy`: its fit on the joint torque's recent past, the
    controller's own variation removed) — a real gain rescales that variation too. Required: the
    real candidate beats its nulls on held-out data (paired CI of the difference > 0). A delay whose CI reaches
    the largest delay searched is not identified. So a gain shows only through the controller's own variation,
@@ -103,8 +103,8 @@ from . import residuals as R
 from . import stats
 from .candidates import FITTED, LIBRARY, NESTS, nested_choice, rivals
 from .screen import screen
-from .fit import (DTYPE, Flat, _base_of, _forward, extend, make_base, misfit_weights, predict, prepare,
-                  sq_errors, train)
+from .fit import (DTYPE, Flat, _base_of, _forward, exo_copy, extend, make_base, misfit_weights, predict,
+                  prepare, sq_errors, train)
 
 
 @dataclass
@@ -160,39 +160,12 @@ def _advanced(flat: Flat, k: np.ndarray) -> Flat:
     return f
 
 
-def _exo_copy(flat: Flat, j: int, max_lag: int = 40) -> Flat:
-    """The same data with the exo torque of joint j replaced by its copy of the joint's torque: per trial, the
-    least-squares fit (training rows) of the recorded exo torque on the recorded total joint torque 1..max_lag
-    samples earlier. Only ``tau_e`` changes, so it serves terms that read the present exo torque alone (a gain).
-
-    An assistive controller's output is mostly such a copy (it follows the torque the joint needs, with its own
-    lag); what the copy leaves over is the controller's own variation (modulation, wiggle, saturation). A real
-    gain error scales the whole recorded torque, that variation included; a term that only soaks up model
-    error correlated with the joint torque does as well from the copy.
-    """
-    f = copy.copy(flat)
-    f.tau_e = flat.tau_e.clone()
-    train = (~flat.held & flat.valid).numpy()
-    tau = flat.tau[:, j].numpy().astype(np.float64)
-    te = flat.tau_e[:, j].numpy().astype(np.float64)
-    start = 0
-    for T in flat.lengths:
-        t = np.arange(T)
-        X = np.stack([np.ones(T)] + [tau[start + np.maximum(t - l, 0)] for l in range(1, max_lag + 1)], 1)
-        rows = train[start:start + T] & (t >= max_lag)
-        if rows.sum() > 2 * X.shape[1]:
-            coef = np.linalg.lstsq(X[rows], te[start:start + T][rows], rcond=None)[0]
-            f.tau_e[start:start + T, j] = torch.as_tensor(X @ coef, dtype=flat.tau_e.dtype)
-        start += T
-    return f
-
-
 def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
                          s: Settings) -> dict:
     """Per joint with exo torque: how far from 1 a torque gain k must be before these data can show it.
 
     Physics: a gain error adds (k − 1) τ_e to the joint. The part of τ_e that copies the joint torque
-    (`_exo_copy`) is a function of the motion the base already predicts, so the base absorbs (k − 1) times it;
+    (`exo_copy`) is a function of the motion the base already predicts, so the base absorbs (k − 1) times it;
     only the controller's own variation o = τ_e − copy identifies k (rule 3's copy null). Fitting k removes
     δ = (k − 1) o from a residual ε, so its held-out gain over the copy null is, per sample, w (δ² + 2 δ ε)
     (w: the decision's weight, all mass-normalised): mean a² P with P = mean(w o²), a = k − 1, and a sampling
@@ -209,7 +182,7 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
         te = flat.tau_e[held, j].numpy().astype(np.float64)
         if not np.abs(te).max() > 0:
             continue
-        own = te - _exo_copy(flat, j).tau_e[held, j].numpy().astype(np.float64)
+        own = te - exo_copy(flat, j).tau_e[held, j].numpy().astype(np.float64)
         w = w_held[:, j] if w_held is not None else np.ones(len(te))
         P = float(np.mean(w * (own / m) ** 2))
         se = float(stats.bootstrap_mean(w * (own / m) * eps[:, j], n_boot=s.n_boot, seed=s.seed).get("se", np.nan))
@@ -712,6 +685,24 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     return m
 
 
+def _describe_base(base, flat: Flat, s: Settings, given: bool) -> str:
+    """What the reference model is, in words, for the report: where it comes from and which contact and body
+    terms it carries (a base trained here and a given run's pooled model carry the same optional parts)."""
+    text = ("given model, context pooled per trial" if given else
+            f"trained here: slow-context DeLaN{' + LIM' if flat.has_insole else ''}")
+    if getattr(base, "body_load", None) is not None:
+        text += " + gravity scaled by the other leg load"
+    if getattr(base, "surge", None) is not None:
+        text += " + pelvis fore-aft acceleration from both insoles"
+    if getattr(base, "cop_lever", None) is not None:
+        text += " + centre-of-pressure lever"
+    if getattr(base, "lim_cop", None) not in (None, False):    # a flag here, a correction network on a given run
+        text += " (insole lever arms see the centre of pressure)"
+    if not given:
+        return text + f", {s.steps_base} steps"
+    return text + (f", adapted to the data's training segments ({s.steps_base} steps)" if s.adapt_model else "")
+
+
 def run(data, model=None, settings: Settings | None = None, trials_loaded=None) -> dict:
     """The whole procedure; returns the result dict (JSON-ready parts plus objects for the report)."""
     s = settings or Settings()
@@ -737,22 +728,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
     if base_start is not None:
         train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
-    if model is None:
-        base_source = (f"trained here: slow-context DeLaN{' + LIM' if flat.has_insole else ''}"
-                       f"{' + gravity scaled by the other leg load' if base.body_load is not None else ''}"
-                       f"{' + pelvis fore-aft acceleration from both insoles' if base.surge is not None else ''}"
-                       f"{' + centre-of-pressure lever' if base.cop_lever is not None else ''}"
-                       f"{' (insole lever arms see the centre of pressure)' if base.lim_cop else ''}, "
-                       f"{s.steps_base} steps")
-    else:
-        base_source = ("given model, context pooled per trial" +
-                       (" + gravity scaled by the other leg load" if flat.has_partner else "") +
-                       (" + pelvis fore-aft acceleration from both insoles"
-                        if getattr(base, "surge", None) is not None else "") +
-                       (" + centre-of-pressure lever" if getattr(base, "cop_lever", None) is not None else "") +
-                       (" + insole lever arms corrected by the centre of pressure"
-                        if getattr(base, "lim_cop", None) is not None else "") +
-                       (f", adapted to the data's training segments ({s.steps_base} steps)" if s.adapt_model else ""))
+    base_source = _describe_base(base, flat, s, given=model is not None)
     _log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
         flat.weight = misfit_weights(base, flat)
@@ -886,7 +862,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # ... and where the exo torque is replaced by its copy of the joint torque: a real gain rescales the
             # controller's own variation too (measured: a clean world's hip "gain" of 3.26 beat its future-torque
             # null at 20 ms by 8e-6 [1.9e-6, 1.5e-5] (N m/kg)², base fitted 3000 steps, seed 6394)
-            variants.append((_exo_copy(flat, j), dict(copy_of_joint_torque=True),
+            variants.append((exo_copy(flat, j), dict(copy_of_joint_torque=True),
                              "its copy of the joint torque (the controller's own variation removed)"))
         nulls = []
         for adv, what, text in variants:
