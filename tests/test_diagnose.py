@@ -80,6 +80,10 @@ def test_linear_drive_viscous_friction_layout2(tmp_path, viscous):
         assert f["unit"] == "N s/m"
         assert abs(f["estimate"] - b) <= 0.2 * b, msg
         assert f["heldout_gain"] > 0 and f["ci"][0] <= f["estimate"] <= f["ci"][1]
+        # the reported interval adds the refit spread to the joint fit's own, which excludes no damping (rule 4)
+        lo_id, hi_id = f["ci_identification"]
+        assert 0 < lo_id <= f["estimate"] <= hi_id and f["ci"][0] <= lo_id and hi_id <= f["ci"][1]
+        assert "rule 4 checks against the no-effect value" in (tmp_path / "diagnosis.md").read_text()
         # decided on the misfit-weighted held-out error, reported with the user's unweighted one beside it
         assert f["decision_gain"]["scale"] == "misfit-weighted" and f["decision_gain"]["ci"][0] > 0
     assert rep["baseline"]["noise_floor"]["scale"] == "misfit-weighted"

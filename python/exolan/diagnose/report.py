@@ -292,9 +292,14 @@ def markdown(rep: dict) -> str:
     L.append("## Verdict")
     if findings:
         for f in findings:
-            L.append(f"- **{f['effect']}** on **{f['joint']}**: {_fmt(f['estimate'])} {f['unit']} "
+            unit = "" if f["unit"] == "1" else f" {f['unit']}"      # a gain is a pure number
+            L.append(f"- **{f['effect']}** on **{f['joint']}**: {_fmt(f['estimate'])}{unit} "
                      f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
+            if f.get("ci_identification") is not None:
+                L.append(f"  - the interval above adds the spread between the joint fit and the single-term warm "
+                         f"start ({_fmt(f.get('estimate_warm_start'))}); the joint fit's own (HAC) interval, which "
+                         f"rule 4 checks against the no-effect value: {_fmt(f['ci_identification'], 3)}")
             dg = f.get("decision_gain")
             if dg:
                 L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}")
