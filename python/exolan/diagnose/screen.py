@@ -75,7 +75,7 @@ def features(model, flat: Flat, idx: torch.Tensor, effect: str, j: int, train_r:
     if effect == "torque_gain":
         te = flat.tau_e[idx, j].numpy().astype(np.float64)
         own = te - exo_copy(flat, j).tau_e[idx, j].numpy().astype(np.float64)
-        return [({}, onehot(te))]
+        return [({}, onehot(te)), ({"own_variation": True}, onehot(own))]
     if effect == "actuation_delay":
         te = flat.tau_e[:, j].numpy().astype(np.float64)
         lag = flat.lag[idx].numpy()
