@@ -524,20 +524,23 @@ def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_
     assert torch.equal(f.tau_e[:, 1], flat.tau_e[:, 1]) and torch.equal(flat.tau_e[:, 0], prepare(trials).tau_e[:, 0])
 
 
+def _assisted_pair(share: float, own_sd: float, seed: int):
+    """Two trials whose hip exo torque is an assistive controller's: `share` of the joint torque 5 samples
+    earlier plus its own slow variation (SD about `own_sd` N m); the knee has no exo torque."""
+    trials = _leg_pair(T=6000)
+    rng = np.random.default_rng(seed)
+    for t in trials:
+        t.tau = np.stack([np.convolve(rng.normal(0, 10, 6040), np.hanning(25), "same")[20:-20]] * 2, 1)
+        t.tau_e = np.zeros_like(t.tau)
+        t.tau_e[5:, 0] = share * t.tau[:-5, 0]
+        t.tau_e[:, 0] += own_sd * np.convolve(rng.normal(0, 1, 6200), np.hanning(101), "same")[100:-100] / 7.0
+    return prepare(trials)
+
+
 def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(monkeypatch):
     """|k − 1| below which a gain cannot show: set by the exo torque's own variation (not its copy of the joint
     torque), the model's misfit and the refit noise. Checked against the closed forms of its two regimes."""
     from exolan.diagnose import procedure as P
-
-    def world(own_sd):
-        trials = _leg_pair(T=6000)
-        rng = np.random.default_rng(3)
-        for t in trials:
-            t.tau = np.stack([np.convolve(rng.normal(0, 10, 6040), np.hanning(25), "same")[20:-20]] * 2, 1)
-            t.tau_e = np.zeros_like(t.tau)
-            t.tau_e[5:, 0] = 0.2 * t.tau[:-5, 0]
-            t.tau_e[:, 0] += own_sd * np.convolve(rng.normal(0, 1, 6200), np.hanning(101), "same")[100:-100] / 7.0
-        return prepare(trials)
 
     sigma_eps = 0.02                                         # the model's white misfit, N m/kg
     eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
@@ -545,7 +548,7 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
     s = P.Settings(n_boot=300)
     lim = {}
     for own_sd in (1.0, 2.0):
-        flat = world(own_sd)
+        flat = _assisted_pair(share=0.2, own_sd=own_sd, seed=3)
         held = flat.index("held")
         out = P.gain_detection_limit(flat, None, held, None, 0.0, s)
         assert set(out) == {"hip"}                           # the knee has no exo torque
@@ -570,14 +573,7 @@ def test_the_gains_screen_regresses_on_the_controllers_own_variation_that_the_ba
     post-hoc θ would shrink to the own share; the screen's own-variation feature recovers it."""
     from exolan.diagnose import screen as S
 
-    trials = _leg_pair(T=6000)
-    rng = np.random.default_rng(5)
-    for t in trials:
-        t.tau = np.stack([np.convolve(rng.normal(0, 10, 6040), np.hanning(25), "same")[20:-20]] * 2, 1)
-        t.tau_e = np.zeros_like(t.tau)
-        t.tau_e[5:, 0] = 0.3 * t.tau[:-5, 0]
-        t.tau_e[:, 0] += 2.0 * np.convolve(rng.normal(0, 1, 6200), np.hanning(101), "same")[100:-100] / 7.0
-    flat = prepare(trials)
+    flat = _assisted_pair(share=0.3, own_sd=2.0, seed=5)
     own = flat.tau_e[:, 0] - S.exo_copy(flat, 0).tau_e[:, 0]
     assert 0.02 < float(own.var() / flat.tau_e[:, 0].var()) < 0.2
     theta = 0.4                                              # k = 1/(1 − θ) ≈ 1.67
