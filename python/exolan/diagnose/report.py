@@ -155,7 +155,9 @@ def plot_gains(out: Path, results: list) -> str | None:
 RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none is tuned to a world):
 1. each candidate is first *screened* by a post-hoc least-squares correction of the reference residual
    (fitted on training segments; it must lower held-out error on average, with the physical sign) — only a
-   lenient screen, since the fitted model has already absorbed part of any effect;
+   lenient screen, since the fitted model has already absorbed part of any effect (a gain is also screened on the
+   controller's own variation alone, the exo torque minus its copy of the joint torque: the copy is what the
+   model absorbs);
 2. a screened candidate is fitted **jointly** with the whole model (warm start, the same optimiser schedule and
    minibatches as a reference refit of the base model alone); its held-out gain (paired, per sample) must have
    a circular-block-bootstrap 95% CI (block length from the ACF) above 0, **and** stay above 0 when the refit
