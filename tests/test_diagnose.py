@@ -8,6 +8,7 @@ Every hidden-effect world (knee damping, hip Coulomb, exo delay, strap, encoder 
 `pytest -m slow tests/test_diagnose.py`.
 """
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,11 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     if WORLD_CASES[case] is not None:
         lo, hi = WORLD_CASES[case][2]
         value = float(np.round(rng.uniform(lo, hi), 4))
+    # to replay a failed draw: EXOLAN_WORLD_DRAW="CASE:SEED[:VALUE]" (the message below prints both)
+    replay = os.environ.get("EXOLAN_WORLD_DRAW", "").split(":")
+    if replay[0] == case:
+        seed = int(replay[1])
+        value = float(replay[2]) if len(replay) > 2 else value
     root = _world(tmp_path, case, seed, value, users, tasks, seconds)
     rep = diagnose(root, out=tmp_path / "diag", quick=True, verbose=False, **settings)
     truth = json.loads((root / "effects.json").read_text()) if (root / "effects.json").exists() else []
