@@ -1133,7 +1133,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
 _PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "estimate", "ci", "unit",
            "heldout_gain", "decision_gain", "status", "reason",
            "heldout_gain_ci", "relative_gain", "relative_gain_ci", "identifiable", "null_gain", "rivals", "vs",
-           "estimate_warm_start", "ci_warm_start", "ci_identification", "ci_method", "note", "kind", "conditional_gain", "screen")
+           "estimate_warm_start", "ci_warm_start", "ci_identification", "ci_method", "note", "kind", "conditional_gain",
+           "screen")
 
 
 def _public(e: dict) -> dict:
