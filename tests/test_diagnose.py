@@ -151,18 +151,21 @@ def _world(tmp_path, case, seed, value, users=2, tasks=WORLD_TASKS, seconds=16):
     return root
 
 
-def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **settings):
+def _draw(name: str, value_range=None) -> tuple[int, float | None]:
+    """A random world seed and planted value (4 decimals) for the draw `name`. To replay a failed draw:
+    EXOLAN_WORLD_DRAW="NAME:SEED[:VALUE]" (the tests' messages print both)."""
     rng = np.random.default_rng()
     seed = int(rng.integers(10000))
-    value = None
-    if WORLD_CASES[case] is not None:
-        lo, hi = WORLD_CASES[case][2]
-        value = float(np.round(rng.uniform(lo, hi), 4))
-    # to replay a failed draw: EXOLAN_WORLD_DRAW="CASE:SEED[:VALUE]" (the message below prints both)
+    value = None if value_range is None else float(np.round(rng.uniform(*value_range), 4))
     replay = os.environ.get("EXOLAN_WORLD_DRAW", "").split(":")
-    if replay[0] == case:
+    if replay[0] == name:
         seed = int(replay[1])
         value = float(replay[2]) if len(replay) > 2 else value
+    return seed, value
+
+
+def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **settings):
+    seed, value = _draw(case, WORLD_CASES[case][2] if WORLD_CASES[case] is not None else None)
     root = _world(tmp_path, case, seed, value, users, tasks, seconds)
     rep = diagnose(root, out=tmp_path / "diag", quick=True, verbose=False, **settings)
     truth = json.loads((root / "effects.json").read_text()) if (root / "effects.json").exists() else []
@@ -270,8 +273,7 @@ def test_hidden_effect_worlds(tmp_path, case):
 def test_a_trained_run_as_base_finds_a_hidden_knee_damping(tmp_path):
     """`--model RUN` on data with a planted knee damping (random magnitude and seed): a trained ExoLaN run (TCN
     context) is the base, adapted at its pooled context; the damping is named within 20 % and nothing else."""
-    rng = np.random.default_rng()
-    seed, value = int(rng.integers(10000)), float(np.round(rng.uniform(1.0, 3.0), 4))
+    seed, value = _draw("trained_run", (1.0, 3.0))
     root = _world(tmp_path, "knee_damping", seed, value)
     run = _train_run(tmp_path, root, epochs=300, hidden=64, threads=2)
     rep = diagnose(root, model=run, out=tmp_path / "diag", quick=True, verbose=False, **WORLD_SETTINGS)
