@@ -378,6 +378,15 @@ def exo_copy(flat: Flat, j: int, max_lag: int = 40) -> Flat:
     return f
 
 
+def exo_own(flat: Flat, j: int) -> Flat:
+    """The same data with the exo torque of joint j replaced by the controller's own variation: the recorded
+    exo torque less its copy of the joint torque (`exo_copy`). A term on it reads only what the copy leaves
+    over, so it helps only where the torque carries that variation (a gain error scales it with the rest)."""
+    f = exo_copy(flat, j)
+    f.tau_e[:, j] = flat.tau_e[:, j] - f.tau_e[:, j]
+    return f
+
+
 class SlowContextDeLaN(nn.Module):
     """DeLaN (+ LIM) with a learned constant context code per trial: z cannot carry q̇ within a step.
 

@@ -103,7 +103,7 @@ from . import residuals as R
 from . import stats
 from .candidates import FITTED, LIBRARY, NESTS, nested_choice, rivals
 from .screen import screen
-from .fit import (DTYPE, Flat, _base_of, _forward, exo_copy, extend, make_base, misfit_weights, predict,
+from .fit import (DTYPE, Flat, _base_of, _forward, exo_copy, exo_own, extend, make_base, misfit_weights, predict,
                   prepare, sq_errors, train)
 
 
@@ -629,6 +629,12 @@ def _refit(model, flat: Flat, s: Settings, seed_offset: int = 1):
 
 # effects that an inflated inertia can mimic: fitted without the acceleration term (`_fresh_fit`)
 INERTIA_CONFUSED = ("actuation_delay",)
+# effects whose fit from scratch starts at no effect, not at the warm estimate (`_fresh_fit`). A torque gain is
+# identified only by the controller's own variation: along its copy of the joint torque the gain trades against
+# the scale of the base's dynamics, a flat valley in which a fit from scratch ends where its start sends it
+# (measured, test settings: planted hip gains 1.87 and 1.92 came out 2.26 and 2.36 started at their warm
+# estimates 1.56 and 1.74, and 1.81 and 1.80 started at 1; world seeds 6079 and 1973)
+START_NEUTRAL = ("torque_gain",)
 
 
 def _with_estimate(init: dict, entry: dict, j: int) -> dict:
@@ -665,8 +671,12 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     it and then stabilised: 26.6 ms, held-out MSE 8.38e-3 against the reference's 8.45e-3, rollout q MSE at 20
     steps 1.4e-3 against 0.9e-3 (world seed 2329). The frictions are not confused with the inertia: knee
     damping 1.67 with the term and 1.61 without (planted 1.80), hip Coulomb 4.70 and 4.82 (planted 3.93).
+
+    The terms start at `init` (their warm estimates), except those in `START_NEUTRAL` (the torque gain), which
+    start at no effect: their fit from scratch ends where it starts.
     """
-    m = ExtendedModel(copy.deepcopy(start), flat.n, list(effects), dt=flat.dt, max_delay=s.max_delay, init=dict(init),
+    init = {k: v for k, v in init.items() if k not in START_NEUTRAL}
+    m = ExtendedModel(copy.deepcopy(start), flat.n, list(effects), dt=flat.dt, max_delay=s.max_delay, init=init,
                       coupled_damping=False)
     confused = any(eff in INERTIA_CONFUSED for eff, _ in effects)
     w_acc = 0.0 if confused else s.w_acc
@@ -858,23 +868,36 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             k[j] = lag
             variants.append((_advanced(flat, k), dict(future_lag_s=float(lag * flat.dt)),
                              f"exo torque {lag} samples in the future"))
-        if entry["effect"] == "torque_gain":
-            # ... and where the exo torque is replaced by its copy of the joint torque: a real gain rescales the
-            # controller's own variation too (measured: a clean world's hip "gain" of 3.26 beat its future-torque
-            # null at 20 ms by 8e-6 [1.9e-6, 1.5e-5] (N m/kg)², base fitted 3000 steps, seed 6394)
-            variants.append((exo_copy(flat, j), dict(copy_of_joint_torque=True),
-                             "its copy of the joint torque (the controller's own variation removed)"))
         nulls = []
+        init = _screen_init(entry["effect"], entry.get("screen", {}))
         for adv, what, text in variants:
-            null = extend(base, adv, [(entry["effect"], j)], init=_screen_init(entry["effect"], entry.get("screen", {})),
-                          max_delay=s.max_delay)
+            null = extend(base, adv, [(entry["effect"], j)], init=init, max_delay=s.max_delay)
             _refit(null, adv, s)
             gn = _gain(held_errors(null, adv)[1], fitted[(entry["effect"], j)][1], s)
-            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], **what))
+            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0), **what))
             _log(s, f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {gn['gain']:.3g} "
                     f"[{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
-        entry["null_gain"] = min(nulls, key=lambda x: x["ci"][0])     # the hardest null decides
-        entry["passes_null"] = bool(entry["null_gain"]["ci"][0] > 0)
+        if entry["effect"] == "torque_gain":
+            # ... and it must show in the controller's own variation (the exo torque less its copy of the joint
+            # torque): the same term on that variation alone must beat the reference, beyond the refit noise
+            # (rule 2). A term that soaks up model error correlated with the joint torque finds nothing there
+            # (measured: a clean world's hip "gain" of 3.26 beat its future-torque null at 20 ms by 8e-6
+            # [1.9e-6, 1.5e-5] (N m/kg)², base fitted 3000 steps, seed 6394). Not the whole term against the
+            # same term on the copy: both refits move the base far (each 3e-4 below the reference) and their
+            # difference is noisy; a hip gain of 1.87 beat that null by 1.9e-5 [-1.1e-5, 5.3e-5] (world
+            # seed 6079), its warm k 1.56 overshooting the own variation's share while holding the copy's.
+            own = exo_own(flat, j)
+            alone = extend(base, own, [(entry["effect"], j)], init=init, max_delay=s.max_delay)
+            _refit(alone, own, s)
+            gn = _gain(e_ref, held_errors(alone, own)[1], s)
+            k_own = alone.estimate(entry["effect"], j)
+            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0 and _above_noise(gn, sigma_r)),
+                              own_variation_only=True, estimate=k_own))
+            _log(s, f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
+                    f"(k {k_own:.3g}) beats the reference by {gn['gain']:.3g} [{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
+        # the hardest null decides: one that is not passed, else the one with the lowest bound
+        entry["null_gain"] = min(nulls, key=lambda x: (x["passes"], x["ci"][0]))
+        entry["passes_null"] = all(x["passes"] for x in nulls)
 
     # 4. single-candidate verdicts
     for entry in results:
@@ -902,8 +925,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             if entry["passes_gain"] and not entry["passes_invariance"]:
                 why.append(_invariance_reason(entry["task_invariance"]))
             if c.needs_exo and entry.get("passes_null") is False:
-                why.append("no better than the same term on the exo torque's copy of the joint torque (a gain must "
-                           "rescale the controller's own variation too)" if entry["null_gain"].get("copy_of_joint_torque")
+                why.append("the same term on the controller's own variation alone (the exo torque less its copy of "
+                           "the joint torque) does not beat the reference beyond the refit noise: a real gain rescales "
+                           "that variation too" if entry["null_gain"].get("own_variation_only")
                            else "no better than the same term on future exo torque (assistive torque tracks the human "
                                 "torque)")
             entry["status"] = "rejected"
