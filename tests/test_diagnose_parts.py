@@ -500,7 +500,7 @@ def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
 def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_own_variation():
     """The gain's third null: the exo torque replaced by its fit on the joint torque's recent past. A lagged
     share of the joint torque is kept; the controller's own slow variation is what it leaves out."""
-    from exolan.diagnose.fit import exo_copy
+    from exolan.diagnose.fit import exo_copy, exo_own
 
     trials = _leg_pair(T=3000)
     rng = np.random.default_rng(2)
@@ -522,6 +522,10 @@ def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_
     assert np.corrcoef(f.tau_e[ok, 0].numpy(), share[ok])[0, 1] > 0.95
     assert np.corrcoef(left[ok], np.concatenate(own)[ok])[0, 1] > 0.9
     assert torch.equal(f.tau_e[:, 1], flat.tau_e[:, 1]) and torch.equal(flat.tau_e[:, 0], prepare(trials).tau_e[:, 0])
+    # rule 3's own-variation null reads what the copy leaves over, the other joint untouched
+    o = exo_own(flat, 0)
+    torch.testing.assert_close(o.tau_e[:, 0], flat.tau_e[:, 0] - f.tau_e[:, 0])
+    assert torch.equal(o.tau_e[:, 1], flat.tau_e[:, 1])
 
 
 def _assisted_pair(share: float, own_sd: float, seed: int):
@@ -538,7 +542,7 @@ def _assisted_pair(share: float, own_sd: float, seed: int):
 
 
 def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(monkeypatch):
-    """|k − 1| below which a gain cannot show: set by the exo torque's own variation (not its copy of the joint
+    """|1 − 1/k| below which a gain cannot show: set by the exo torque's own variation (not its copy of the joint
     torque), the model's misfit and the refit noise. Checked against the closed forms of its two regimes."""
     from exolan.diagnose import procedure as P
 
@@ -557,12 +561,14 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
         P_own = np.mean(own ** 2)
         # sampling-dominated (σ_r = 0): a = 2·1.96·SE(o ε)/P with SE ≈ rms(o) σ_ε / √N for a white ε
         expect = 2 * 1.96 * np.sqrt(P_own) * sigma_eps / np.sqrt(len(held)) / P_own
-        assert 0.75 * expect < v["min_abs_k_minus_1"] < 1.33 * expect
+        assert 0.75 * expect < v["theta_limit"] < 1.33 * expect
+        # θ = 1 − 1/k: the limits on k itself, asymmetric about 1
+        assert np.isclose(1 - 1 / v["k_above"], v["theta_limit"]) and np.isclose(1 / v["k_below"] - 1, v["theta_limit"])
         assert 0.5 < v["copy_share"] < 0.99 and v["rms_own"] < v["rms_exo"]
         # refit-noise-dominated: a → √(1.96 σ_r / P)
-        big = P.gain_detection_limit(flat, None, held, None, 1e-2, s)["hip"]["min_abs_k_minus_1"]
+        big = P.gain_detection_limit(flat, None, held, None, 1e-2, s)["hip"]["theta_limit"]
         assert abs(big / np.sqrt(1.96 * 1e-2 / P_own) - 1) < 0.05
-        lim[own_sd] = v["min_abs_k_minus_1"]
+        lim[own_sd] = v["theta_limit"]
     # twice the controller's own variation: half the limit (its copy share alone would not tell)
     assert 0.4 < lim[2.0] / lim[1.0] < 0.6
 

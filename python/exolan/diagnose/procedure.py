@@ -19,13 +19,14 @@ statistic of the data at hand):
    candidate is refitted with the exo torque taken from the *future* — at the lag (≥ 25 ms) where it
    correlates most with the training residual: the future exo torque cannot act on the limb now but shares
    its correlation with the human torque. A gain, which has no lag of its own, must also beat the null at the
-   controller's tracking lag (where the future exo torque copies the recorded joint torque best), and the null
-   on the exo torque's copy of the joint torque (`exo_copy`: its fit on the joint torque's recent past, the
-   controller's own variation removed) — a real gain rescales that variation too. Required: the
-   real candidate beats its nulls on held-out data (paired CI of the difference > 0). A delay whose CI reaches
-   the largest delay searched is not identified. So a gain shows only through the controller's own variation,
-   and one close to 1 cannot show at all: the report states, per joint, the |k − 1| these data could detect
-   (`gain_detection_limit`).
+   controller's tracking lag (where the future exo torque copies the recorded joint torque best), and it must
+   show in the controller's own variation: the exo torque less its copy of the joint torque (`exo_copy`: its
+   fit on the joint torque's recent past; `exo_own`). The same term on that variation alone must beat the
+   reference, beyond the refit noise as in rule 2 — a real gain rescales it too, a term that soaks up model
+   error correlated with the joint torque finds nothing there. Required: the real candidate beats its nulls
+   on held-out data (paired CI of the difference > 0). A delay whose CI reaches the largest delay searched is
+   not identified. So a gain shows only through the controller's own variation, and one close to 1 cannot
+   show at all: the report states, per joint, the gains these data could detect (`gain_detection_limit`).
 4. **Valid sign and identifiable.** Signs are enforced by the parametrisation (D PSD, Fc, Fs, d, 1/k ≥ 0);
    a parameter that the fit drives to its boundary is not identified. The parameter's 95% CI (Gauss-Newton
    sandwich with Newey-West/HAC covariance from statsmodels on the training residuals, lags = ACF block
@@ -164,14 +165,18 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
                          s: Settings) -> dict:
     """Per joint with exo torque: how far from 1 a torque gain k must be before these data can show it.
 
-    Physics: a gain error adds (k − 1) τ_e to the joint. The part of τ_e that copies the joint torque
-    (`exo_copy`) is a function of the motion the base already predicts, so the base absorbs (k − 1) times it;
-    only the controller's own variation o = τ_e − copy identifies k (rule 3's copy null). Fitting k removes
-    δ = (k − 1) o from a residual ε, so its held-out gain over the copy null is, per sample, w (δ² + 2 δ ε)
-    (w: the decision's weight, all mass-normalised): mean a² P with P = mean(w o²), a = k − 1, and a sampling
-    error 2 |a| SE(w o ε) (block bootstrap). It is seen when a² P clears 1.96 √(σ_r² + 4 a² SE²), the refit
-    noise included; solved for a. An estimate under the model's present misfit ε (the reference's), not a
-    guarantee: it tells the user that a gain closer to 1 than this is not a finding this data set can make.
+    Physics: the sensor reads k times the applied torque, so the joint's torque differs from the model's by
+    θ τ_e with θ = 1 − 1/k, τ_e the recorded exo torque. The part of τ_e that copies the joint torque
+    (`exo_copy`) is a function of the motion the base already predicts, so the base absorbs θ times it; only
+    the controller's own variation o = τ_e − copy identifies k (rule 3's own-variation null). Fitting θ
+    removes δ = θ o from a residual ε, so its held-out gain is, per sample, w (δ² + 2 δ ε) (w: the decision's
+    weight, all mass-normalised): mean θ² P with P = mean(w o²), and a sampling error 2 |θ| SE(w o ε) (block
+    bootstrap). It is seen when θ² P clears 1.96 √(σ_r² + 4 θ² SE²), the refit noise included; solved for
+    |θ| (`theta_limit`), that is k below 1/(1 + |θ|) (`k_below`) or above 1/(1 − |θ|) (`k_above`). An
+    estimate under the model's present misfit ε (the reference's), not a guarantee, and an optimistic one
+    where the base also absorbs part of o (a saturating controller's own variation is partly a function of
+    the motion: a reference left 0.26 of a planted θ of 0.47 on o, world seed 6079): it tells the user that
+    a gain closer to 1 than this is not a finding this data set can make.
     """
     if not flat.has_exo or not len(held):
         return {}
@@ -191,7 +196,9 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
         b = 4.0 * 1.96 ** 2 * se ** 2
         a2 = (b + math.sqrt(b * b + 4.0 * P ** 2 * (1.96 * sigma_r) ** 2)) / (2.0 * P ** 2)
         var_te = float(np.var(te))
-        out[name] = dict(min_abs_k_minus_1=float(math.sqrt(a2)),
+        theta = math.sqrt(a2)
+        out[name] = dict(theta_limit=theta, k_below=1.0 / (1.0 + theta),
+                         k_above=1.0 / (1.0 - theta) if theta < 1.0 else float("inf"),
                          copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
                          rms_exo=float(np.sqrt(np.mean(te ** 2))), rms_own=float(np.sqrt(np.mean(own ** 2))))
     return out
@@ -788,7 +795,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     structure = R.residual_structure(ref, flat, held)
     limits = {"torque_gain": gain_detection_limit(flat, ref, held, w_held, sigma_r, s)}
     for name, v in limits["torque_gain"].items():
-        _log(s, f"torque gain on {name}: detectable beyond |k - 1| ≈ {v['min_abs_k_minus_1']:.2g} (the copy of the "
+        _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the copy of the "
                 f"joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
 
     # 2. screen every candidate post hoc (cheap), then fit the promising ones jointly (warm start, same

@@ -171,9 +171,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual; a gain also at the
    controller's tracking lag): the future exo torque cannot act now but shares the assistive controller's
-   correlation with the human torque; a gain must also beat the same term on the exo torque's copy of the
-   joint torque (its fit on the joint torque's recent past), since a real gain rescales the controller's own
-   variation as well;
+   correlation with the human torque; a gain must also show in the controller's own variation (the exo torque
+   less its copy of the joint torque, the copy being its fit on the joint torque's recent past): the same term
+   on that variation alone must beat the reference beyond the refit noise, since a real gain rescales it too;
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least
@@ -270,14 +270,15 @@ def _limit_lines(limits: dict) -> list[str]:
     L = ["## What these data cannot show",
          "A torque gain error k shows only through the controller's own variation: the part of the exo torque "
          "that copies the joint torque is absorbed by a base that predicts the joint torque from the motion "
-         "(rule 3's copy null). Gains closer to 1 than the limit below would not clear the sampling and refit "
-         "noise of these data (an estimate at the base's present misfit; `procedure.gain_detection_limit`).", "",
+         "(rule 3's own-variation null). Gains between the limits below would not clear the sampling and refit "
+         "noise of these data (an estimate at the base's present misfit, optimistic where the base absorbs part "
+         "of the own variation too; `procedure.gain_detection_limit`).", "",
          "| joint | exo torque rms [N m] | share that copies the joint torque | own variation rms [N m] | "
-         "a gain shows beyond k = 1 ± |",
-         "|---|---|---|---|---|"]
+         "a gain shows below k = | or above k = |",
+         "|---|---|---|---|---|---|"]
     for j, v in gain.items():
         L.append(f"| {j} | {_fmt(v['rms_exo'], 3)} | {100 * v['copy_share']:.0f} % | {_fmt(v['rms_own'], 3)} | "
-                 f"{_fmt(v['min_abs_k_minus_1'], 2)} |")
+                 f"{_fmt(v['k_below'], 3)} | {_fmt(v['k_above'], 3)} |")
     L.append("")
     return L
 
