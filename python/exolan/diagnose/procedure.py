@@ -795,8 +795,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     structure = R.residual_structure(ref, flat, held)
     limits = {"torque_gain": gain_detection_limit(flat, ref, held, w_held, sigma_r, s)}
     for name, v in limits["torque_gain"].items():
-        _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the copy of the "
-                f"joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
+        _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
+                f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
 
     # 2. screen every candidate post hoc (cheap), then fit the promising ones jointly (warm start, same
     #    schedule and minibatches as the reference)
