@@ -641,3 +641,17 @@ def test_a_nested_rival_pair_that_held_out_data_cannot_separate_takes_the_simple
     assert nested_choice([s, c]) is c and nested_choice([c, s]) is c
     assert nested_choice([dict(effect="actuation_delay"), dict(effect="viscous_damping")]) is None
     assert nested_choice([s, dict(effect="viscous_damping")]) is None
+
+
+def test_the_report_shows_rule_3s_nulls_of_an_exo_driven_finding():
+    """A finding driven by the recorded exo torque lists every null it was held against (rule 3), the
+    own-variation one with its own k, and marks a null that was not passed."""
+    from exolan.diagnose.report import _evidence_lines
+
+    f = dict(nulls=[dict(gain=2.66e-5, ci=[1.27e-5, 3.94e-5], passes=True, future_lag_s=0.02),
+                    dict(gain=3.0e-5, ci=[-4.3e-6, 6.0e-5], passes=False, own_variation_only=True, estimate=1.394)])
+    lines = _evidence_lines(f)
+    assert len(lines) == 2
+    assert "20 ms in the future by 2.66e-05" in lines[0] and "not passed" not in lines[0]
+    assert "own variation alone (k 1.39)" in lines[1] and lines[1].endswith("(not passed)")
+    assert _evidence_lines({}) == []

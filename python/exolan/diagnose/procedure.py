@@ -903,6 +903,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _log(s, f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
                     f"(k {k_own:.3g}) beats the reference by {gn['gain']:.3g} [{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
         # the hardest null decides: one that is not passed, else the one with the lowest bound
+        entry["nulls"] = nulls
         entry["null_gain"] = min(nulls, key=lambda x: (x["passes"], x["ci"][0]))
         entry["passes_null"] = all(x["passes"] for x in nulls)
 
@@ -1163,7 +1164,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
 
 _PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "estimate", "ci", "unit",
            "heldout_gain", "decision_gain", "status", "reason",
-           "heldout_gain_ci", "relative_gain", "relative_gain_ci", "identifiable", "null_gain", "rivals", "vs",
+           "heldout_gain_ci", "relative_gain", "relative_gain_ci", "identifiable", "null_gain", "nulls", "rivals", "vs",
            "estimate_warm_start", "ci_warm_start", "ci_identification", "ci_method", "note", "kind", "conditional_gain",
            "screen")
 

@@ -254,6 +254,11 @@ def _evidence_lines(f: dict) -> list[str]:
                    f"Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}")
     if ti.get("note") and ti.get("dropped"):
         out.append(f"  - {ti['note']}")
+    for n in f.get("nulls") or []:      # rule 3, for terms driven by the recorded exo torque
+        what = (f"the same term on the controller's own variation alone (k {_fmt(n.get('estimate'), 3)}) beats the "
+                f"reference by" if n.get("own_variation_only") else
+                f"beats the same term on the exo torque {_fmt(1e3 * n['future_lag_s'], 3)} ms in the future by")
+        out.append(f"  - null: {what} {_fmt(n['gain'], 3)} CI {_fmt(n['ci'], 3)}{'' if n.get('passes') else ' (not passed)'}")
     sg = f.get("subject_gains") or {}
     if sg:
         out.append("  - gain by subject: " + ", ".join(f"{k} {_fmt(v['gain'], 3)} {_fmt(v['ci'], 3)}" for k, v in sg.items()))
