@@ -438,13 +438,65 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
 def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
     """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
     the further term is refitted with the accepted one from scratch, the report carries that comparison, and
-    the extended model is the cached from-scratch fit of the final set (no third fit)."""
+    the extended model is built around the cached from-scratch fit of the final set (no third fit): its terms
+    are that fit's estimates, the ones the report gives."""
+    import exolan.diagnose.procedure as P
+
+    around = []
+    real = P._around_estimates
+
+    def spy(ref, fresh, flat, s, effects, init):
+        m = real(ref, fresh, flat, s, effects, init)
+        around.append((fresh, m))
+        return m
+
+    monkeypatch.setattr(P, "_around_estimates", spy)
     rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch)
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     cg = second[0]["conditional_gain"]     # the user's unweighted gain is reported beside the decision's
     assert np.isfinite(cg["user_gain"]) and np.isfinite(cg["from_scratch"]["user_gain"])
     assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
+    assert len(around) == 1
+    fresh, m = around[0]
+    for f in rep["findings"]:
+        assert f["estimate"] == pytest.approx(fresh.estimate(f["effect"], 0), rel=1e-6)
+        assert rep["extended"]["parameters"][f"{f['effect']}:x"] == pytest.approx(m.estimate(f["effect"], 0), rel=1e-9)
+        assert m.estimate(f["effect"], 0) == pytest.approx(fresh.estimate(f["effect"], 0), rel=1e-9)
+
+
+def test_the_extended_model_is_the_references_base_refitted_around_the_joint_estimates(arm, monkeypatch):
+    """`_around_estimates`: the reference's base (not the fit from scratch's) is refitted once with the terms
+    frozen at the joint fit's values; the reference and the joint fit are left as they were, and the terms are
+    free again afterwards."""
+    import exolan.diagnose.procedure as P
+
+    s = Settings(steps_base=12, steps_refit=8, hidden=8, verbose=False)
+    ref = make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
+    P.train(ref, arm, 10, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+    effects = [("viscous_damping", 0), ("coulomb_friction", 1)]
+    fresh = P._fresh_fit(arm, s, effects, {"viscous_damping": 0.3, "coulomb_friction": 0.2},
+                         make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed + 5))
+    ref_before = copy.deepcopy(ref.state_dict())
+    fresh_before = copy.deepcopy(fresh.state_dict())
+    calls = []
+    real = P.train
+
+    def spy(model, flat, steps, **kw):
+        calls.append(dict(free=[p.requires_grad for p in model.ext_parameters()],
+                          same_base=all(torch.equal(a, b) for a, b in
+                                        zip(model.base.state_dict().values(), ref_before.values()))))
+        return real(model, flat, steps, **kw)
+
+    monkeypatch.setattr(P, "train", spy)
+    m = P._around_estimates(ref, fresh, arm, s, effects, {})
+    assert len(calls) == 1 and calls[0]["same_base"] and not any(calls[0]["free"])
+    for eff, j in effects:
+        assert m.estimate(eff, j) == fresh.estimate(eff, j)
+    assert not all(torch.equal(a, b) for a, b in zip(m.base.state_dict().values(), ref_before.values()))
+    assert all(torch.equal(a, b) for a, b in zip(ref.state_dict().values(), ref_before.values()))
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), fresh_before.values()))
+    assert all(p.requires_grad for p in m.ext_parameters())
 
 
 def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path, monkeypatch):

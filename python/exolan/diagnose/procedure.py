@@ -69,8 +69,11 @@ present from the first step, the reference's total budget): a warm start keeps w
 absorbed of an effect and biases its parameter low, while a fresh fit carries the noise of a whole base fit.
 The joint fit gives the reported estimates; their CIs include the spread to the warm start. A term whose
 parameter the joint fit does not identify (rule 4 again) is reported as `ambiguous`, and the extended model
-is fitted again without it. An extended model that does not beat the reference on held-out data (rule 1
-again) confirms none of its terms: they are reported as `ambiguous`. The extended model's held-out torque MSE
+is fitted again without it. The model handed to the user is the reference's base refitted (warm) around the
+terms held at the joint estimates (`_around_estimates`): a base fitted from scratch lands in another optimum,
+whose error on the task it extrapolates worst varies between fits far beyond a term's gain. An extended
+model that does not beat the reference on held-out data beyond the refit noise (rules 1 and 2 again)
+confirms none of its terms: they are reported as `ambiguous`. The extended model's held-out torque MSE
 and rollout errors are compared with the reference's, paired, with block-bootstrap CIs.
 
 Every refit (reference, twins, candidates, nulls, the extended model's last steps) is weighted least
@@ -701,6 +704,36 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     return m
 
 
+def _around_estimates(ref, fresh: ExtendedModel, flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
+    """The reference with the terms at the joint fit's estimates (`fresh`, fitted from scratch), its base refitted
+    around them (warm, the terms frozen): the extended model that rule 1 judges and the user gets.
+
+    Why not the fit from scratch itself: a base fitted from scratch lands in another optimum than the
+    reference's, and the held-out error of the task it extrapolates worst varies between such fits far beyond
+    a term's gain. Measured (test settings, knee damping 1.45, world seed 2281; held-out misfit-weighted MSE,
+    squat's in brackets): reference 2.45e-3 (2.68e-3); the base alone from scratch at seeds 1 and 2 3.01e-3
+    (4.12e-3) and 2.80e-3 (3.56e-3); with the damping from scratch at seeds 0 and 1 2.93e-3 (6.35e-3) and
+    2.69e-3 (5.20e-3), estimates 1.39 and 1.40, while every other task improved. Judged against the reference,
+    the fit from scratch lost (−4.8e-4 [−2.4e-3, 5.9e-4]) and the damping was missed. The reference's base
+    refitted around 1.39 differs from the reference only by the terms and one refit (the refit noise σ_r of
+    rule 2): 2.24e-3 (squat 2.27e-3), gain 2.2e-4 [1.4e-4, 3.1e-4] — and the model handed over carries the
+    estimates that the report gives (the warm single-term fit had 0.50).
+    """
+    m = extend(ref, flat, list(effects), init=dict(init), max_delay=s.max_delay)
+    ext = m.ext_parameters()
+    with torch.no_grad():
+        for p, q in zip(ext, fresh.ext_parameters(), strict=True):
+            p.copy_(q)
+    for p in ext:
+        p.requires_grad_(False)
+    try:
+        _refit(m, flat, s, seed_offset=len(effects) + 7)
+    finally:
+        for p in ext:
+            p.requires_grad_(True)
+    return m
+
+
 def _describe_base(base, flat: Flat, s: Settings, given: bool) -> str:
     """What the reference model is, in words, for the report: where it comes from and which contact and body
     terms it carries (a base trained here and a given run's pooled model carry the same optional parts)."""
@@ -1098,17 +1131,21 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _log(s, f"{e['effect']} {e['joint']}: {e['reason']}")
         accepted = [e for e in accepted if e not in unconfirmed]
         ext_model = None
+    if accepted and base_start is not None:
+        # the model handed to the user: the reference's base refitted around the joint fit's estimates
+        ext_model = _around_estimates(ref, ext_model, flat, s, effs, init)
     if accepted:
-        # rule 1 once more, for the extended model that is handed to the user: fitted jointly, the accepted terms
-        # must still beat the reference on held-out data (measured: the main job's clean world accepted a hip
-        # "delay" of 4.6 ms term by term; its extended model's held-out gain was 1.1e-4 [-1.7e-3, 2.0e-3])
+        # rule 1 once more, for the extended model that is handed to the user: with the accepted terms at their
+        # joint estimates it must still beat the reference on held-out data, beyond the refit noise as in rule 2
+        # (measured: the main job's clean world accepted a hip "delay" of 4.6 ms term by term; its extended
+        # model's held-out gain was 1.1e-4 [-1.7e-3, 2.0e-3])
         u_ext, d_ext = held_errors(ext_model)
         g_dec = _gain(e_ref, d_ext, s)
-        if not (g_dec["ci"][0] > 0 and _user_improves(e_ref_user, u_ext)):
+        if not (g_dec["ci"][0] > 0 and _above_noise(g_dec, sigma_r) and _user_improves(e_ref_user, u_ext)):
             for e in accepted:
                 e["status"] = "ambiguous"
                 e["reason"] = (f"passed every rule term by term (estimate {e['estimate']:.4g}), but the extended model "
-                               f"with all accepted terms does not beat the base on held-out data: "
+                               f"with all accepted terms does not beat the base on held-out data beyond the refit noise: "
                                f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}] ({scale})")
                 _log(s, f"{e['effect']} {e['joint']}: {e['reason']}")
             accepted, ext_model = [], None

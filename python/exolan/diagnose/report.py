@@ -190,8 +190,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    the other in a limit, Stribeck to Coulomb as vs → ∞, the simpler is taken); a further term must add held-out
    gain beyond the noise floor (and lower the unweighted error) on top of the already accepted ones and of the
    better term of each ambiguous set (forward selection), confirmed with both models fitted from scratch where
-   the base was fitted here; the extended model with all accepted terms must beat the base on held-out data as
-   in rule 1, or its terms are `ambiguous`;
+   the base was fitted here; the extended model (the terms at the estimates of their joint fit from scratch,
+   the base refitted around them) must beat the base on held-out data as in rules 1 and 2, or its terms are
+   `ambiguous`;
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
 
 
