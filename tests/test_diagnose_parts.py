@@ -707,3 +707,19 @@ def test_the_report_shows_rule_3s_nulls_of_an_exo_driven_finding():
     assert "20 ms in the future by 2.66e-05" in lines[0] and "not passed" not in lines[0]
     assert "own variation alone (k 1.39)" in lines[1] and lines[1].endswith("(not passed)")
     assert _evidence_lines({}) == []
+
+
+def test_the_own_variation_null_asks_for_a_gain_on_the_same_side_of_1():
+    """Rule 3's own-variation null for a torque gain passes only when its gain beats the reference beyond the
+    refit noise and its k lies on the same side of 1 as the whole term's (a spurious clean-world hip gain of
+    1.295 beside an own-variation k of 0.845 is not a sensor's scale error)."""
+    from exolan.diagnose.procedure import _own_variation_passes
+
+    rng = np.random.default_rng(0)
+    g = dict(gain=3e-5, ci=[1e-5, 5e-5], draws=rng.normal(3e-5, 1e-5, 2000))
+    assert _own_variation_passes(g, 1e-6, 1.39, 1.87)
+    assert _own_variation_passes(g, 1e-6, 0.7, 0.8)
+    assert not _own_variation_passes(g, 1e-6, 0.845, 1.295)
+    assert not _own_variation_passes(g, 1e-6, 1.2, 0.9)
+    assert not _own_variation_passes(g, 5e-5, 1.39, 1.87)            # within the refit noise
+    assert not _own_variation_passes(dict(g, ci=[-1e-6, 5e-5]), 1e-6, 1.39, 1.87)
