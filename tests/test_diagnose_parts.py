@@ -623,6 +623,15 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
         lim[own_sd] = v["theta_limit"]
     # twice the controller's own variation: half the limit (its copy share alone would not tell)
     assert 0.4 < lim[2.0] / lim[1.0] < 0.6
+    # a gain in the data leaves part of θ o in the reference's residual: the limit is that of the data without
+    # it, not inflated by the effect it is to detect
+    flat = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
+    own_all = (flat.tau_e[:, 0] - P.exo_copy(flat, 0).tau_e[:, 0]) / flat.mass
+    with_gain = eps.clone()
+    with_gain[:, 0] += 0.3 * own_all
+    monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - with_gain[idx] * f.mass[idx, None])
+    v = P.gain_detection_limit(flat, None, flat.index("held"), None, 0.0, s)["hip"]
+    assert abs(v["theta_limit"] / lim[1.0] - 1) < 0.05
 
 
 def test_the_gains_screen_regresses_on_the_controllers_own_variation_that_the_base_leaves(monkeypatch):
