@@ -711,15 +711,20 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
           weighted=False)
     _refit(m, flat, replace(s, w_acc=w_acc))
     if confused:
-        ext = m.ext_parameters()
-        for p in ext:
-            p.requires_grad_(False)
-        try:
-            _refit(m, flat, s, seed_offset=len(effects) + 1)
-        finally:
-            for p in ext:
-                p.requires_grad_(True)
+        _refit_terms_frozen(m, flat, s, seed_offset=len(effects) + 1)
     return m
+
+
+def _refit_terms_frozen(m: ExtendedModel, flat: Flat, s: Settings, seed_offset: int) -> None:
+    """A warm refit of the base's networks with the physical terms held where they are (free again after)."""
+    ext = m.ext_parameters()
+    for p in ext:
+        p.requires_grad_(False)
+    try:
+        _refit(m, flat, s, seed_offset=seed_offset)
+    finally:
+        for p in ext:
+            p.requires_grad_(True)
 
 
 def _around_estimates(ref, fresh: ExtendedModel, flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
@@ -738,17 +743,10 @@ def _around_estimates(ref, fresh: ExtendedModel, flat: Flat, s: Settings, effect
     estimates that the report gives (the warm single-term fit had 0.50).
     """
     m = extend(ref, flat, list(effects), init=dict(init), max_delay=s.max_delay)
-    ext = m.ext_parameters()
     with torch.no_grad():
-        for p, q in zip(ext, fresh.ext_parameters(), strict=True):
+        for p, q in zip(m.ext_parameters(), fresh.ext_parameters(), strict=True):
             p.copy_(q)
-    for p in ext:
-        p.requires_grad_(False)
-    try:
-        _refit(m, flat, s, seed_offset=len(effects) + 7)
-    finally:
-        for p in ext:
-            p.requires_grad_(True)
+    _refit_terms_frozen(m, flat, s, seed_offset=len(effects) + 7)
     return m
 
 
