@@ -407,7 +407,7 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
-    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0: True)
+    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: True)
     monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
     spread = P._spread
     monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
@@ -438,63 +438,104 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
 def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
     """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
     the further term is refitted with the accepted one from scratch, the report carries that comparison, and
-    the extended model is built around the cached from-scratch fit of the final set (no third fit): its terms
-    are that fit's estimates, the ones the report gives."""
-    import exolan.diagnose.procedure as P
-
-    around = []
-    real = P._around_estimates
-
-    def spy(ref, fresh, flat, s, effects, init):
-        m = real(ref, fresh, flat, s, effects, init)
-        around.append((fresh, m))
-        return m
-
-    monkeypatch.setattr(P, "_around_estimates", spy)
+    the extended model is the cached from-scratch fit of the final set (no third fit), its terms the reported
+    estimates."""
     rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch)
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     cg = second[0]["conditional_gain"]     # the user's unweighted gain is reported beside the decision's
     assert np.isfinite(cg["user_gain"]) and np.isfinite(cg["from_scratch"]["user_gain"])
     assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
-    assert len(around) == 1
+    assert rep["extended"]["model"] == "fitted from scratch with the terms"
+    for f in rep["findings"]:
+        assert rep["extended"]["parameters"][f"{f['effect']}:x"] == pytest.approx(f["estimate"], rel=1e-9)
+
+
+def _fresh_extended_loses(monkeypatch, held_too: bool = False):
+    """Make the extended model's first confirmation (the fit from scratch, judged at alpha 0.025) lose; with
+    `held_too` the second one (the reference's refit with the terms held) as well."""
+    import exolan.diagnose.procedure as P
+
+    real = P._gain
+    calls = []
+
+    def gain(e_ref, e_new, s, seed=0, alpha=0.05):
+        g = real(e_ref, e_new, s, seed=seed, alpha=alpha)
+        if alpha == 0.025:
+            calls.append(g["gain"])
+            if len(calls) == 1 or held_too:
+                g = dict(g, gain=-abs(g["gain"]), ci=[-2 * abs(g["gain"]) - 1e-9, -1e-12])
+        return g
+
+    monkeypatch.setattr(P, "_gain", gain)
+    return calls
+
+
+def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_references_refit_at_its_estimates(
+        tmp_path, monkeypatch):
+    """Step 7: where the fit from scratch does not beat the reference, the reference's own refit with the terms
+    held at the same (joint) estimates is tried; when it confirms, it is the model handed over, still carrying the
+    reported estimates; when it does not either, the terms are ambiguous and the reason gives both comparisons."""
+    import exolan.diagnose.procedure as P
+
+    around = []
+    real = P._around_estimates
+
+    def spy(base, fresh, flat, s, effects, init):
+        m = real(base, fresh, flat, s, effects, init)
+        around.append((fresh, m))
+        return m
+
+    monkeypatch.setattr(P, "_around_estimates", spy)
+    calls = _fresh_extended_loses(monkeypatch)
+    rep, _ = _linear_drive_with_rules_open(tmp_path / "a", monkeypatch)
+    assert len(calls) == 2 and len(around) == 1
+    assert rep["extended"]["model"].startswith("the reference's refit with the terms held")
     fresh, m = around[0]
     for f in rep["findings"]:
         assert f["estimate"] == pytest.approx(fresh.estimate(f["effect"], 0), rel=1e-6)
-        assert rep["extended"]["parameters"][f"{f['effect']}:x"] == pytest.approx(m.estimate(f["effect"], 0), rel=1e-9)
-        assert m.estimate(f["effect"], 0) == pytest.approx(fresh.estimate(f["effect"], 0), rel=1e-9)
+        assert rep["extended"]["parameters"][f"{f['effect']}:x"] == m.estimate(f["effect"], 0)
+        assert m.estimate(f["effect"], 0) == fresh.estimate(f["effect"], 0)
+
+    _fresh_extended_loses(monkeypatch, held_too=True)
+    rep, _ = _linear_drive_with_rules_open(tmp_path / "b", monkeypatch)
+    assert rep["findings"] == [] and rep["extended"]["note"].startswith("nothing found")
+    amb = [e for e in rep["rejected"] if e["status"] == "ambiguous" and "joint estimates" in e["reason"]]
+    assert len(amb) == 2
+    assert "fitted from scratch" in amb[0]["reason"] and "terms held there" in amb[0]["reason"]
 
 
-def test_the_extended_model_is_the_references_base_refitted_around_the_joint_estimates(arm, monkeypatch):
-    """`_around_estimates`: the reference's base (not the fit from scratch's) is refitted once with the terms
-    frozen at the joint fit's values; the reference and the joint fit are left as they were, and the terms are
-    free again afterwards."""
+def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, monkeypatch):
+    """`_around_estimates`: the fitted base (not the fit from scratch's) is refitted once, with the reference's
+    seed offset and the terms frozen at the joint fit's values; the base and the joint fit are left as they
+    were, and the terms are free again afterwards."""
     import exolan.diagnose.procedure as P
 
     s = Settings(steps_base=12, steps_refit=8, hidden=8, verbose=False)
-    ref = make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
-    P.train(ref, arm, 10, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+    base = make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
+    P.train(base, arm, 10, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
     effects = [("viscous_damping", 0), ("coulomb_friction", 1)]
     fresh = P._fresh_fit(arm, s, effects, {"viscous_damping": 0.3, "coulomb_friction": 0.2},
                          make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed + 5))
-    ref_before = copy.deepcopy(ref.state_dict())
+    base_before = copy.deepcopy(base.state_dict())
     fresh_before = copy.deepcopy(fresh.state_dict())
     calls = []
     real = P.train
 
     def spy(model, flat, steps, **kw):
-        calls.append(dict(free=[p.requires_grad for p in model.ext_parameters()],
+        calls.append(dict(free=[p.requires_grad for p in model.ext_parameters()], seed=kw["seed"], steps=steps,
                           same_base=all(torch.equal(a, b) for a, b in
-                                        zip(model.base.state_dict().values(), ref_before.values()))))
+                                        zip(model.base.state_dict().values(), base_before.values()))))
         return real(model, flat, steps, **kw)
 
     monkeypatch.setattr(P, "train", spy)
-    m = P._around_estimates(ref, fresh, arm, s, effects, {})
+    m = P._around_estimates(base, fresh, arm, s, effects, {})
     assert len(calls) == 1 and calls[0]["same_base"] and not any(calls[0]["free"])
+    assert calls[0]["seed"] == s.seed + 1 and calls[0]["steps"] == s.steps_refit     # the reference's refit
     for eff, j in effects:
         assert m.estimate(eff, j) == fresh.estimate(eff, j)
-    assert not all(torch.equal(a, b) for a, b in zip(m.base.state_dict().values(), ref_before.values()))
-    assert all(torch.equal(a, b) for a, b in zip(ref.state_dict().values(), ref_before.values()))
+    assert not all(torch.equal(a, b) for a, b in zip(m.base.state_dict().values(), base_before.values()))
+    assert all(torch.equal(a, b) for a, b in zip(base.state_dict().values(), base_before.values()))
     assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), fresh_before.values()))
     assert all(p.requires_grad for p in m.ext_parameters())
 

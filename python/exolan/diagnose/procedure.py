@@ -70,11 +70,12 @@ present from the first step, the reference's total budget): a warm start keeps w
 absorbed of an effect and biases its parameter low, while a fresh fit carries the noise of a whole base fit.
 The joint fit gives the reported estimates; their CIs include the spread to the warm start. A term whose
 parameter the joint fit does not identify (rule 4 again) is reported as `ambiguous`, and the extended model
-is fitted again without it. The model handed to the user is the reference's base refitted (warm) around the
-terms held at the joint estimates (`_around_estimates`): a base fitted from scratch lands in another optimum,
-whose error on the task it extrapolates worst varies between fits far beyond a term's gain. An extended
-model that does not beat the reference on held-out data beyond the refit noise (rules 1 and 2 again)
-confirms none of its terms: they are reported as `ambiguous`. The extended model's held-out torque MSE
+is fitted again without it. An extended model that does not beat the reference on held-out data (rule 1
+again) confirms none of its terms: they are reported as `ambiguous`. Two models carry the joint estimates:
+the fit from scratch, and the reference's own refit with the terms held there (`_around_estimates`; it must
+also clear the refit noise, rule 2). A base fitted from scratch lands in another optimum, whose error on the
+task it extrapolates worst varies between fits beyond a term's gain; a base fitted without the terms may not
+take them in one refit. Either confirms (Bonferroni over the two), and the one that does is handed over. The extended model's held-out torque MSE
 and rollout errors are compared with the reference's, paired, with block-bootstrap CIs.
 
 Every refit (reference, twins, candidates, nulls, the extended model's last steps) is weighted least
@@ -418,10 +419,10 @@ def _identifiable(effect: str, pci: dict, max_delay: float = float("inf")) -> bo
     return not (lo <= neutral <= hi)
 
 
-def _gain(e_ref: np.ndarray, e_new: np.ndarray, s: Settings, seed: int = 0) -> dict:
+def _gain(e_ref: np.ndarray, e_new: np.ndarray, s: Settings, seed: int = 0, alpha: float = 0.05) -> dict:
     d = e_ref - e_new
-    b = stats.bootstrap_mean(d, n_boot=s.n_boot, seed=seed, draws=True)
-    rel = stats.bootstrap_mean(d, n_boot=s.n_boot, seed=seed, ratio_to=e_ref, block=b["block"])
+    b = stats.bootstrap_mean(d, n_boot=s.n_boot, seed=seed, draws=True, alpha=alpha)
+    rel = stats.bootstrap_mean(d, n_boot=s.n_boot, seed=seed, ratio_to=e_ref, block=b["block"], alpha=alpha)
     return dict(gain=b["mean"], ci=b["ci"], se=b["se"], block=b["block"], rel=rel["mean"], rel_ci=rel["ci"],
                 draws=b.get("draws"))
 
@@ -443,8 +444,9 @@ def _held_errors(model, flat: Flat, held: torch.Tensor, w_held: np.ndarray | Non
     return e.sum(1), (e * w_held).sum(1) if w_held is not None else e.sum(1)
 
 
-def _above_noise(g: dict, sigma_r: float, seed: int = 0) -> bool:
-    """Rule 2: the gain's 95 % lower bound, with the refit noise added to its sampling error, is above 0.
+def _above_noise(g: dict, sigma_r: float, seed: int = 0, alpha: float = 0.05) -> bool:
+    """Rule 2: the gain's 95 % lower bound (1 − alpha, two-sided), with the refit noise added to its sampling
+    error, is above 0.
 
     The gain's error is the sum of two independent ones: the sampling error of the held-out samples (the
     block bootstrap's replicates, `g["draws"]`) and the refit noise N(0, σ_r²). The bound is the 2.5 %
@@ -459,7 +461,7 @@ def _above_noise(g: dict, sigma_r: float, seed: int = 0) -> bool:
     if draws is None:       # no held-out samples (`stats.bootstrap_mean` returns no replicates): no evidence
         return False
     noise = np.random.default_rng(seed).normal(0.0, sigma_r, size=len(draws))
-    return bool(np.quantile(draws + noise, 0.025) > 0)
+    return bool(np.quantile(draws + noise, alpha / 2) > 0)
 
 
 def _own_variation_passes(g: dict, sigma_r: float, k_own: float, k_term: float) -> bool:
@@ -727,26 +729,31 @@ def _refit_terms_frozen(m: ExtendedModel, flat: Flat, s: Settings, seed_offset: 
             p.requires_grad_(True)
 
 
-def _around_estimates(ref, fresh: ExtendedModel, flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
-    """The reference with the terms at the joint fit's estimates (`fresh`, fitted from scratch), its base refitted
-    around them (warm, the terms frozen): the extended model that rule 1 judges and the user gets.
+def _around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
+    """The reference's own refit with the terms held at the joint fit's estimates (`fresh`, fitted from
+    scratch): the base as fitted, the terms frozen there, the reference's refit schedule and minibatch order
+    (seed offset 1). It differs from the reference by the terms alone, so rule 1's paired comparison with the
+    reference carries only the refit noise σ_r of rule 2.
 
-    Why not the fit from scratch itself: a base fitted from scratch lands in another optimum than the
-    reference's, and the held-out error of the task it extrapolates worst varies between such fits far beyond
-    a term's gain. Measured (test settings, knee damping 1.45, world seed 2281; held-out misfit-weighted MSE,
-    squat's in brackets): reference 2.45e-3 (2.68e-3); the base alone from scratch at seeds 1 and 2 3.01e-3
-    (4.12e-3) and 2.80e-3 (3.56e-3); with the damping from scratch at seeds 0 and 1 2.93e-3 (6.35e-3) and
-    2.69e-3 (5.20e-3), estimates 1.39 and 1.40, while every other task improved. Judged against the reference,
-    the fit from scratch lost (−4.8e-4 [−2.4e-3, 5.9e-4]) and the damping was missed. The reference's base
-    refitted around 1.39 differs from the reference only by the terms and one refit (the refit noise σ_r of
-    rule 2): 2.24e-3 (squat 2.27e-3), gain 2.2e-4 [1.4e-4, 3.1e-4] — and the model handed over carries the
-    estimates that the report gives (the warm single-term fit had 0.50).
+    The second way an extended model can confirm its terms (step 7 of `run`), when the fit from scratch does
+    not: a base fitted from scratch lands in another optimum than the reference's, and the held-out error of the
+    task it extrapolates worst varies between such fits far beyond a term's gain. Measured (test settings, knee
+    damping 1.45, world seed 2281; held-out misfit-weighted MSE, squat's in brackets): reference 2.45e-3
+    (2.68e-3); the base alone from scratch at seeds 1 and 2 3.01e-3 (4.12e-3) and 2.80e-3 (3.56e-3); with the
+    damping from scratch at seeds 0 and 1 2.93e-3 (6.35e-3) and 2.69e-3 (5.20e-3), estimates 1.39 and 1.40,
+    every other task improved. Against the reference the fit from scratch lost, −4.8e-4 [−2.4e-3, 5.9e-4];
+    this model at 1.39 gained 1.2e-4 [3.0e-5, 2.1e-4] (2.24e-3 at seed offset 2). The same noise works the other
+    way too: in a knee-delay world (21.6 ms, seed 644) the fit from scratch (18.6 ms) gained 2.1e-4
+    [1.1e-4, 3.4e-4] and this model only 1.5e-5 [−2.0e-5, 4.4e-5] (the base, fitted without the delay, does not
+    take a larger one in one refit; the free warm fit settled at 12 ms). Not the reference refitted once more:
+    this reference's own twins, refitted from it, gained 1.2e-5 to 2.6e-5 (it was not converged), a bias in
+    favour of any model with one more refit.
     """
-    m = extend(ref, flat, list(effects), init=dict(init), max_delay=s.max_delay)
+    m = extend(base, flat, list(effects), init=dict(init), max_delay=s.max_delay)
     with torch.no_grad():
         for p, q in zip(m.ext_parameters(), fresh.ext_parameters(), strict=True):
             p.copy_(q)
-    _refit_terms_frozen(m, flat, s, seed_offset=len(effects) + 7)
+    _refit_terms_frozen(m, flat, s, seed_offset=1)
     return m
 
 
@@ -1147,28 +1154,47 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _log(s, f"{e['effect']} {e['joint']}: {e['reason']}")
         accepted = [e for e in accepted if e not in unconfirmed]
         ext_model = None
-    if accepted and base_start is not None:
-        # the model handed to the user: the reference's base refitted around the joint fit's estimates
-        ext_model = _around_estimates(ref, ext_model, flat, s, effs, init)
     if accepted:
         # rule 1 once more, for the extended model that is handed to the user: with the accepted terms at their
-        # joint estimates it must still beat the reference on held-out data, beyond the refit noise as in rule 2
-        # (measured: the main job's clean world accepted a hip "delay" of 4.6 ms term by term; its extended
-        # model's held-out gain was 1.1e-4 [-1.7e-3, 2.0e-3])
+        # joint estimates it must still beat the reference on held-out data (measured: the main job's clean world
+        # accepted a hip "delay" of 4.6 ms term by term; its extended model's held-out gain was 1.1e-4 [-1.7e-3,
+        # 2.0e-3]). Where the base was fitted here, two models carry those estimates: the fit from scratch, and
+        # the reference's own refit with the terms frozen there (`_around_estimates`), beyond the refit noise as
+        # in rule 2. Each has its own noise (the fit from scratch another base's optimum, the other a base that
+        # does not move far in one refit), so either confirms, at the level 0.05/2 (Bonferroni over the two),
+        # the fit from scratch tried first; the one that confirms is handed over.
+        two = base_start is not None
+        alpha = 0.025 if two else 0.05
         u_ext, d_ext = held_errors(ext_model)
-        g_dec = _gain(e_ref, d_ext, s)
-        if not (g_dec["ci"][0] > 0 and _above_noise(g_dec, sigma_r) and _user_improves(e_ref_user, u_ext)):
+        g_dec = _gain(e_ref, d_ext, s, alpha=alpha)
+        confirmed = bool(g_dec["ci"][0] > 0 and _user_improves(e_ref_user, u_ext))
+        ext_how = ("fitted from scratch with the terms" if two else "the given model refitted with the terms (warm start)")
+        tried = f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]" + (" fitted from scratch" if two else "")
+        if not confirmed and two:
+            held_at = _around_estimates(base, ext_model, flat, s, effs, init)
+            u_h, d_h = held_errors(held_at)
+            g_h = _gain(e_ref, d_h, s, alpha=alpha)
+            _log(s, f"extended {effs}: from scratch {g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]; "
+                    f"the reference's refit with the terms held there {g_h['gain']:.3g} [{g_h['ci'][0]:.3g}, "
+                    f"{g_h['ci'][1]:.3g}] ({scale})")
+            if g_h["ci"][0] > 0 and _above_noise(g_h, sigma_r, alpha=alpha) and _user_improves(e_ref_user, u_h):
+                confirmed, ext_model, u_ext = True, held_at, u_h
+                ext_how = "the reference's refit with the terms held at the estimates of their fit from scratch"
+            tried += (f", {g_h['gain']:.3g} [{g_h['ci'][0]:.3g}, {g_h['ci'][1]:.3g}] as the reference's refit with the "
+                      f"terms held there (beyond the refit noise required)")
+        if not confirmed:
             for e in accepted:
                 e["status"] = "ambiguous"
                 e["reason"] = (f"passed every rule term by term (estimate {e['estimate']:.4g}), but the extended model "
-                               f"with all accepted terms does not beat the base on held-out data beyond the refit noise: "
-                               f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}] ({scale})")
+                               f"with all accepted terms at their joint estimates does not beat the base on held-out "
+                               f"data: {tried} ({scale}{', each CI at 97.5 %' if two else ''})")
                 _log(s, f"{e['effect']} {e['joint']}: {e['reason']}")
             accepted, ext_model = [], None
     if accepted:
         extended, ro_ext = _metrics(ext_model, flat, s, starts)
         g = _gain(e_ref_user, u_ext, s)     # the user's gain: unweighted
         extended["terms"] = [f"{a}:{flat.joints[j]}" for a, j in effs]
+        extended["model"] = ext_how
         extended["heldout_gain"] = g["gain"]; extended["heldout_gain_ci"] = g["ci"]
         extended["relative_gain"] = g["rel"]; extended["relative_gain_ci"] = g["rel_ci"]
         extended["parameters"] = {f"{a}:{flat.joints[j]}": ext_model.estimate(a, j) for a, j in effs}

@@ -191,9 +191,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    the other in a limit, Stribeck to Coulomb as vs → ∞, the simpler is taken); a further term must add held-out
    gain beyond the noise floor (and lower the unweighted error) on top of the already accepted ones and of the
    better term of each ambiguous set (forward selection), confirmed with both models fitted from scratch where
-   the base was fitted here; the extended model (the terms at the estimates of their joint fit from scratch,
-   the base refitted around them) must beat the base on held-out data as in rules 1 and 2, or its terms are
-   `ambiguous`;
+   the base was fitted here; the extended model with the terms at their joint estimates must beat the base on
+   held-out data as in rule 1 (fitted from scratch, or else the base's own refit with the terms held there,
+   beyond the refit noise; Bonferroni over the two), or its terms are `ambiguous`;
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
 
 
@@ -326,7 +326,8 @@ def markdown(rep: dict) -> str:
     if findings and ext.get("heldout_gain") is not None:
         L.append("")
         L.append(f"Extended model ({', '.join(ext.get('terms', []))}) held-out gain: {_fmt(ext['heldout_gain'], 3)} "
-                 f"(N m/kg)², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}.")
+                 f"(N m/kg)², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}"
+                 + (f" ({ext['model']})." if ext.get("model") else "."))
         for k, v in (ext.get("rollout_gain") or {}).items():
             L.append(f"- rollout {k} reduction: {_fmt(v['gain'], 3)} CI {_fmt(v['ci'], 3)}")
     nf = rep["baseline"].get("noise_floor")
