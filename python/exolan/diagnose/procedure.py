@@ -24,10 +24,10 @@ statistic of the data at hand):
    fit on the joint torque's recent past; `exo_own`). The same term on that variation alone must beat the
    reference, beyond the refit noise as in rule 2, with its k on the same side of 1 as the whole term's — a
    real gain rescales it too, a term that soaks up model error correlated with the joint torque finds nothing
-   there. Required: the real candidate beats its nulls
-   on held-out data (paired CI of the difference > 0). A delay whose CI reaches the largest delay searched is
-   not identified. So a gain shows only through the controller's own variation, and one close to 1 cannot
-   show at all: the report states, per joint, the gains these data could detect (`gain_detection_limit`).
+   there. Required: the real candidate beats its nulls on held-out data (paired CI of the difference > 0). A
+   delay whose CI reaches the largest delay searched is not identified. So a gain shows only through the
+   controller's own variation, and one close to 1 cannot show at all: the report states, per joint, the gains
+   these data could detect (`gain_detection_limit`).
 4. **Valid sign and identifiable.** Signs are enforced by the parametrisation (D PSD, Fc, Fs, d, 1/k ≥ 0);
    a parameter that the fit drives to its boundary is not identified. The parameter's 95% CI (Gauss-Newton
    sandwich with Newey-West/HAC covariance from statsmodels on the training residuals, lags = ACF block
@@ -75,8 +75,9 @@ again) confirms none of its terms: they are reported as `ambiguous`. Two models 
 the fit from scratch, and the reference's own refit with the terms held there (`_around_estimates`; it must
 also clear the refit noise, rule 2). A base fitted from scratch lands in another optimum, whose error on the
 task it extrapolates worst varies between fits beyond a term's gain; a base fitted without the terms may not
-take them in one refit. Either confirms (Bonferroni over the two), and the one that does is handed over. The extended model's held-out torque MSE
-and rollout errors are compared with the reference's, paired, with block-bootstrap CIs.
+take them in one refit. Either confirms (Bonferroni over the two), and the one that does is handed over. The
+extended model's held-out torque MSE and rollout errors are compared with the reference's, paired, with
+block-bootstrap CIs.
 
 Every refit (reference, twins, candidates, nulls, the extended model's last steps) is weighted least
 squares: each trial and joint is weighted by the base model's inverse mean squared training residual there
@@ -445,8 +446,8 @@ def _held_errors(model, flat: Flat, held: torch.Tensor, w_held: np.ndarray | Non
 
 
 def _above_noise(g: dict, sigma_r: float, seed: int = 0, alpha: float = 0.05) -> bool:
-    """Rule 2: the gain's 95 % lower bound (1 − alpha, two-sided), with the refit noise added to its sampling
-    error, is above 0.
+    """Rule 2: the gain's lower confidence bound (two-sided level 1 − alpha, 95 % by default), with the refit
+    noise added to its sampling error, is above 0.
 
     The gain's error is the sum of two independent ones: the sampling error of the held-out samples (the
     block bootstrap's replicates, `g["draws"]`) and the refit noise N(0, σ_r²). The bound is the 2.5 %
@@ -742,7 +743,7 @@ def _around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effec
     (2.68e-3); the base alone from scratch at seeds 1 and 2 3.01e-3 (4.12e-3) and 2.80e-3 (3.56e-3); with the
     damping from scratch at seeds 0 and 1 2.93e-3 (6.35e-3) and 2.69e-3 (5.20e-3), estimates 1.39 and 1.40,
     every other task improved. Against the reference the fit from scratch lost, −4.8e-4 [−2.4e-3, 5.9e-4];
-    this model at 1.39 gained 1.2e-4 [3.0e-5, 2.1e-4] (2.24e-3 at seed offset 2). The same noise works the other
+    this model at 1.39 gained 1.2e-4 [3.0e-5, 2.1e-4] (1.7e-4 [9.4e-5, 2.5e-4] with another minibatch order). The same noise works the other
     way too: in a knee-delay world (21.6 ms, seed 644) the fit from scratch (18.6 ms) gained 2.1e-4
     [1.1e-4, 3.4e-4] and this model only 1.5e-5 [−2.0e-5, 4.4e-5] (the base, fitted without the delay, does not
     take a larger one in one refit; the free warm fit settled at 12 ms). Not the reference refitted once more:
@@ -1168,8 +1169,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         u_ext, d_ext = held_errors(ext_model)
         g_dec = _gain(e_ref, d_ext, s, alpha=alpha)
         confirmed = bool(g_dec["ci"][0] > 0 and _user_improves(e_ref_user, u_ext))
-        ext_how = ("fitted from scratch with the terms" if two else "the given model refitted with the terms (warm start)")
-        tried = f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]" + (" fitted from scratch" if two else "")
+        ext_how = "fitted from scratch with the terms" if two else "the given model refitted with the terms (warm start)"
+        tried = f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]" + (" from scratch" if two else "")
         if not confirmed and two:
             held_at = _around_estimates(base, ext_model, flat, s, effs, init)
             u_h, d_h = held_errors(held_at)
