@@ -481,8 +481,8 @@ def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_refe
     around = []
     real = P._around_estimates
 
-    def spy(base, fresh, flat, s, effects, init):
-        m = real(base, fresh, flat, s, effects, init)
+    def spy(base, fresh, flat, s, effects):
+        m = real(base, fresh, flat, s, effects)
         around.append((fresh, m))
         return m
 
@@ -529,7 +529,7 @@ def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, mo
         return real(model, flat, steps, **kw)
 
     monkeypatch.setattr(P, "train", spy)
-    m = P._around_estimates(base, fresh, arm, s, effects, {})
+    m = P._around_estimates(base, fresh, arm, s, effects)
     assert len(calls) == 1 and calls[0]["same_base"] and not any(calls[0]["free"])
     assert calls[0]["seed"] == s.seed + 1 and calls[0]["steps"] == s.steps_refit     # the reference's refit
     for eff, j in effects:

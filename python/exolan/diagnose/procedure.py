@@ -730,7 +730,7 @@ def _refit_terms_frozen(m: ExtendedModel, flat: Flat, s: Settings, seed_offset: 
             p.requires_grad_(True)
 
 
-def _around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effects, init: dict) -> ExtendedModel:
+def _around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effects) -> ExtendedModel:
     """The reference's own refit with the terms held at the joint fit's estimates (`fresh`, fitted from
     scratch): the base as fitted, the terms frozen there, the reference's refit schedule and minibatch order
     (seed offset 1). It differs from the reference by the terms alone, so rule 1's paired comparison with the
@@ -743,15 +743,15 @@ def _around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effec
     (2.68e-3); the base alone from scratch at seeds 1 and 2 3.01e-3 (4.12e-3) and 2.80e-3 (3.56e-3); with the
     damping from scratch at seeds 0 and 1 2.93e-3 (6.35e-3) and 2.69e-3 (5.20e-3), estimates 1.39 and 1.40,
     every other task improved. Against the reference the fit from scratch lost, −4.8e-4 [−2.4e-3, 5.9e-4];
-    this model at 1.39 gained 1.2e-4 [3.0e-5, 2.1e-4] (1.7e-4 [9.4e-5, 2.5e-4] with another minibatch order). The same noise works the other
-    way too: in a knee-delay world (21.6 ms, seed 644) the fit from scratch (18.6 ms) gained 2.1e-4
-    [1.1e-4, 3.4e-4] and this model only 1.5e-5 [−2.0e-5, 4.4e-5] (the base, fitted without the delay, does not
-    take a larger one in one refit; the free warm fit settled at 12 ms). Not the reference refitted once more:
-    this reference's own twins, refitted from it, gained 1.2e-5 to 2.6e-5 (it was not converged), a bias in
-    favour of any model with one more refit.
+    this model at 1.39 gained 1.2e-4 [3.0e-5, 2.1e-4] (1.7e-4 [9.4e-5, 2.5e-4] with another minibatch order).
+    The same noise works the other way too: in a knee-delay world (21.6 ms, seed 644) the fit from scratch
+    (18.6 ms) gained 2.1e-4 [1.1e-4, 3.4e-4] and this model only 1.5e-5 [−2.0e-5, 4.4e-5] (the base, fitted
+    without the delay, does not take a larger one in one refit; the free warm fit settled at 12 ms). Not the
+    reference refitted once more: this reference's own twins, refitted from it, gained 1.2e-5 to 2.6e-5 (it was
+    not converged), a bias in favour of any model with one more refit.
     """
-    m = extend(base, flat, list(effects), init=dict(init), max_delay=s.max_delay)
-    with torch.no_grad():
+    m = extend(base, flat, list(effects), max_delay=s.max_delay)
+    with torch.no_grad():       # every term's parameter is the joint fit's
         for p, q in zip(m.ext_parameters(), fresh.ext_parameters(), strict=True):
             p.copy_(q)
     _refit_terms_frozen(m, flat, s, seed_offset=1)
@@ -954,8 +954,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _refit(alone, own, s)
             gn = _gain(e_ref, held_errors(alone, own)[1], s)
             k_own = alone.estimate(entry["effect"], j)
-            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=_own_variation_passes(gn, sigma_r, k_own, entry["estimate"]),
-                              own_variation_only=True, estimate=k_own))
+            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], own_variation_only=True, estimate=k_own,
+                              passes=_own_variation_passes(gn, sigma_r, k_own, entry["estimate"])))
             _log(s, f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
                     f"(k {k_own:.3g}) beats the reference by {gn['gain']:.3g} [{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
         # the hardest null decides: one that is not passed, else the one with the lowest bound
@@ -1169,10 +1169,11 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         u_ext, d_ext = held_errors(ext_model)
         g_dec = _gain(e_ref, d_ext, s, alpha=alpha)
         confirmed = bool(g_dec["ci"][0] > 0 and _user_improves(e_ref_user, u_ext))
-        ext_how = "fitted from scratch with the terms" if two else "the given model refitted with the terms (warm start)"
+        ext_how = ("fitted from scratch with the terms" if two else
+                   "the given model refitted with the terms (warm start)")
         tried = f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]" + (" from scratch" if two else "")
         if not confirmed and two:
-            held_at = _around_estimates(base, ext_model, flat, s, effs, init)
+            held_at = _around_estimates(base, ext_model, flat, s, effs)
             u_h, d_h = held_errors(held_at)
             g_h = _gain(e_ref, d_h, s, alpha=alpha)
             _log(s, f"extended {effs}: from scratch {g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]; "
