@@ -351,6 +351,18 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
     return flat
 
 
+def sample_groups(flat: Flat, idx: torch.Tensor) -> tuple[np.ndarray, str]:
+    """Group label of every sample in idx: its task, or its trial where the data hold a single task (a test
+    bench); ("", "none") when there is a single trial. The groups of rule 5 and of the screen's per-group fit."""
+    tri = flat.trial[idx].numpy()
+    tasks = np.array([flat.trial_meta[i]["task"] for i in tri])
+    if len(np.unique(tasks)) >= 2:
+        return tasks, "task"
+    if len(flat.lengths) >= 2:
+        return np.array([flat.trial_meta[i]["name"] + f"#{i}" for i in tri]), "trial"
+    return np.zeros(len(tri), dtype=str), "none"
+
+
 def exo_copy(flat: Flat, j: int, max_lag: int = 40) -> Flat:
     """The same data with the exo torque of joint j replaced by its copy of the joint's torque: per trial, the
     least-squares fit (training rows) of the recorded exo torque on the recorded total joint torque 1..max_lag

@@ -63,7 +63,8 @@ statistic of the data at hand):
    strap) is accepted on the same joint, else `rejected`.
 
 A post-hoc screen (`screen.py`) first discards candidates whose least-squares correction of the reference
-residual does not help held-out data even after the fact; only the rest are refitted (the expensive step).
+residual (one θ for all data, or one per task) does not help held-out data even after the fact; only the
+rest are refitted (the expensive step).
 
 The extended model holds every accepted term and is refitted *from scratch* (fresh base, the accepted terms
 present from the first step, the reference's total budget): a warm start keeps what the base already
@@ -111,7 +112,7 @@ from . import stats
 from .candidates import FITTED, LIBRARY, NESTS, nested_choice, rivals
 from .screen import screen
 from .fit import (DTYPE, Flat, _base_of, _forward, exo_copy, exo_own, extend, make_base, misfit_weights, predict,
-                  prepare, sq_errors, train)
+                  prepare, sample_groups, sq_errors, train)
 
 
 @dataclass
@@ -165,6 +166,22 @@ def _advanced(flat: Flat, k: np.ndarray) -> Flat:
                 getattr(f, name)[start:start + T, j] = getattr(flat, name)[src, j]
         start += T
     return f
+
+
+def _future_null(base, flat: Flat, entry: dict, j: int, lag: int, s: Settings):
+    """Rule 3's null for an exo-driven term: the same term, unfitted, on the exo torque of joint j taken `lag`
+    samples in the future; (model, advanced data, what, text).
+
+    A delay d on the advanced torque applies τ_e(t + lag − d): the null's delay is held at d ≤ lag, so it reaches
+    the present or future torque only. Free up to max_delay it could apply a causal delay of up to max_delay − lag
+    (20 ms for a null 80 ms ahead), which is the effect under test, not a null."""
+    effect = entry["effect"]
+    k = np.zeros(flat.n, dtype=int)
+    k[j] = lag
+    adv = _advanced(flat, k)
+    max_delay = min(s.max_delay, lag * flat.dt) if effect == "actuation_delay" else s.max_delay
+    null = extend(base, adv, [(effect, j)], init=_screen_init(effect, entry.get("screen", {})), max_delay=max_delay)
+    return null, adv, dict(future_lag_s=float(lag * flat.dt)), f"exo torque {lag} samples in the future"
 
 
 def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
@@ -420,6 +437,11 @@ def _identifiable(effect: str, pci: dict, max_delay: float = float("inf")) -> bo
     return not (lo <= neutral <= hi)
 
 
+def _gci(g: dict) -> str:
+    """"gain [lo, hi]" of a `_gain` (or screen) result, for the log and the reasons."""
+    return f"{g['gain']:.3g} [{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]"
+
+
 def _gain(e_ref: np.ndarray, e_new: np.ndarray, s: Settings, seed: int = 0, alpha: float = 0.05) -> dict:
     d = e_ref - e_new
     b = stats.bootstrap_mean(d, n_boot=s.n_boot, seed=seed, draws=True, alpha=alpha)
@@ -476,15 +498,8 @@ def _own_variation_passes(g: dict, sigma_r: float, k_own: float, k_term: float) 
 
 
 def _held_groups(flat: Flat, held: torch.Tensor) -> tuple[np.ndarray, str]:
-    """Group label of every held-out sample for the task-invariance rule: its task, or its trial where the
-    data hold a single task (a test bench). ("", "none") when there is a single trial."""
-    tri = flat.trial[held].numpy()
-    tasks = np.array([flat.trial_meta[i]["task"] for i in tri])
-    if len(np.unique(tasks)) >= 2:
-        return tasks, "task"
-    if len(flat.lengths) >= 2:
-        return np.array([flat.trial_meta[i]["name"] + f"#{i}" for i in tri]), "trial"
-    return np.zeros(len(tri), dtype=str), "none"
+    """Group label of every held-out sample for the task-invariance rule (`fit.sample_groups`)."""
+    return sample_groups(flat, held)
 
 
 def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=None, neutral: float = 0.0,
@@ -873,13 +888,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 entry.update(status="rejected", reason="no exoskeleton torque recorded: not testable")
                 continue
             sc = screen(ref, flat, effect, j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
-            entry["screen"] = {k: v for k, v in sc.items() if k in ("gain", "ci", "theta", "vs", "d")}
+            entry["screen"] = {k: v for k, v in sc.items() if k in ("gain", "ci", "theta", "vs", "d", "form")}
             if not sc["passes"]:
                 entry.update(status="absorbable" if c.kind == "absorbable" else "rejected",
                              reason=("a flexible conservative model represents this effect; " if c.kind == "absorbable"
                                      else "") + "screen: " + sc["reason"], heldout_gain=sc["gain"],
                              heldout_gain_ci=sc["ci"])
-                _log(s, f"{effect:18s} {name:9s} screen gain {sc['gain']:.3g} [{sc['ci'][0]:.3g}, {sc['ci'][1]:.3g}]: "
+                _log(s, f"{effect:18s} {name:9s} screen gain {_gci(sc)}: "
                         f"{sc['reason']}")
                 continue
             t1 = time.time()
@@ -909,9 +924,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             entry["passes_invariance"] = entry["task_invariance"]["passes"]
             entry["subject_gains"] = _subject_gains(e_ref_user - e_user, held_subject, s)
             fitted[(effect, j)] = (ext, e)
-            _log(s, f"{effect:18s} {name:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {gu['gain']:.3g} "
-                    f"[{gu['ci'][0]:.3g}, {gu['ci'][1]:.3g}] rel {gu['rel']:.3f}; decision ({scale}) {g['gain']:.3g} "
-                    f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
+            _log(s, f"{effect:18s} {name:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {_gci(gu)} "
+                    f"rel {gu['rel']:.3f}; decision ({scale}) {_gci(g)} ({time.time() - t1:.0f} s)")
 
     # 3. nulls for exo-driven candidates that pass so far: the same term fitted on the exo torque taken
     #    from the future (at the lag where it correlates most with the residual)
@@ -925,21 +939,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # a gain has no lag of its own: its null also takes the exo torque where it copies the joint torque
             # best (a clean world's knee "gain" 1.47 beat the residual-chosen null at 200 ms, measured)
             lags = sorted({lags[0], _track_lag(flat, j)})
-        variants = []
-        for lag in lags:
-            k = np.zeros(flat.n, dtype=int)
-            k[j] = lag
-            variants.append((_advanced(flat, k), dict(future_lag_s=float(lag * flat.dt)),
-                             f"exo torque {lag} samples in the future"))
+        variants = [_future_null(base, flat, entry, j, lag, s) for lag in lags]
         nulls = []
-        init = _screen_init(entry["effect"], entry.get("screen", {}))
-        for adv, what, text in variants:
-            null = extend(base, adv, [(entry["effect"], j)], init=init, max_delay=s.max_delay)
+        for null, adv, what, text in variants:
             _refit(null, adv, s)
             gn = _gain(held_errors(null, adv)[1], fitted[(entry["effect"], j)][1], s)
             nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0), **what))
-            _log(s, f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {gn['gain']:.3g} "
-                    f"[{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
+            _log(s, f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {_gci(gn)}")
         if entry["effect"] == "torque_gain":
             # ... and it must show in the controller's own variation (the exo torque less its copy of the joint
             # torque): the same term on that variation alone must beat the reference, beyond the refit noise
@@ -950,6 +956,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # difference is noisy; a hip gain of 1.87 beat that null by 1.9e-5 [-1.1e-5, 5.3e-5] (world
             # seed 6079), its warm k 1.56 overshooting the own variation's share while holding the copy's.
             own = exo_own(flat, j)
+            init = _screen_init(entry["effect"], entry.get("screen", {}))
             alone = extend(base, own, [(entry["effect"], j)], init=init, max_delay=s.max_delay)
             _refit(alone, own, s)
             gn = _gain(e_ref, held_errors(alone, own)[1], s)
@@ -957,7 +964,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             nulls.append(dict(gain=gn["gain"], ci=gn["ci"], own_variation_only=True, estimate=k_own,
                               passes=_own_variation_passes(gn, sigma_r, k_own, entry["estimate"])))
             _log(s, f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
-                    f"(k {k_own:.3g}) beats the reference by {gn['gain']:.3g} [{gn['ci'][0]:.3g}, {gn['ci'][1]:.3g}]")
+                    f"(k {k_own:.3g}) beats the reference by {_gci(gn)}")
         # the hardest null decides: one that is not passed, else the one with the lowest bound
         entry["nulls"] = nulls
         entry["null_gain"] = min(nulls, key=lambda x: (x["passes"], x["ci"][0]))
@@ -1070,8 +1077,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             g = _gain(cur_e, e_both, s)
             e["conditional_gain"] = dict(given=[f"{a}:{flat.joints[b]}" for a, b in given], gain=g["gain"], ci=g["ci"],
                                          start=start, scale=scale, user_gain=float(np.mean(cur_u - u_both)))
-            _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: gain {g['gain']:.3g} "
-                    f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
+            _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: gain {_gci(g)}")
             inv = invariance(cur_e - e_both, both, e["effect"], jj)
             e["conditional_gain"]["task_invariance"] = inv
             # as rule 1: the user's unweighted torque error must improve too
@@ -1092,7 +1098,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 e["conditional_gain"]["from_scratch"] = dict(gain=gf["gain"], ci=gf["ci"], task_invariance=invf,
                                                              user_gain=float(np.mean(u_cur_f - u_both_f)))
                 _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}, both fitted from "
-                        f"scratch: gain {gf['gain']:.3g} [{gf['ci'][0]:.3g}, {gf['ci'][1]:.3g}]")
+                        f"scratch: gain {_gci(gf)}")
                 passes = _above_noise(gf, sigma_r) and invf["passes"] and _user_improves(u_cur_f, u_both_f)
                 inv = invf if not invf["passes"] else inv
             if passes:
@@ -1171,18 +1177,17 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         confirmed = bool(g_dec["ci"][0] > 0 and _user_improves(e_ref_user, u_ext))
         ext_how = ("fitted from scratch with the terms" if two else
                    "the given model refitted with the terms (warm start)")
-        tried = f"{g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]" + (" from scratch" if two else "")
+        tried = _gci(g_dec) + (" from scratch" if two else "")
         if not confirmed and two:
             held_at = _around_estimates(base, ext_model, flat, s, effs)
             u_h, d_h = held_errors(held_at)
             g_h = _gain(e_ref, d_h, s, alpha=alpha)
-            _log(s, f"extended {effs}: from scratch {g_dec['gain']:.3g} [{g_dec['ci'][0]:.3g}, {g_dec['ci'][1]:.3g}]; "
-                    f"the reference's refit with the terms held there {g_h['gain']:.3g} [{g_h['ci'][0]:.3g}, "
-                    f"{g_h['ci'][1]:.3g}] ({scale})")
+            _log(s, f"extended {effs}: from scratch {_gci(g_dec)}; "
+                    f"the reference's refit with the terms held there {_gci(g_h)} ({scale})")
             if g_h["ci"][0] > 0 and _above_noise(g_h, sigma_r, alpha=alpha) and _user_improves(e_ref_user, u_h):
                 confirmed, ext_model, u_ext = True, held_at, u_h
                 ext_how = "the reference's refit with the terms held at the estimates of their fit from scratch"
-            tried += (f", {g_h['gain']:.3g} [{g_h['ci'][0]:.3g}, {g_h['ci'][1]:.3g}] as the reference's refit with the "
+            tried += (f", {_gci(g_h)} as the reference's refit with the "
                       f"terms held there (beyond the refit noise required)")
         if not confirmed:
             for e in accepted:
@@ -1218,7 +1223,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             e["ci_identification"] = _report_param(e["effect"], joint_fit[id(e)])[1]
             e["ci_method"] = ("HAC sandwich (statsmodels, Newey-West) of the joint refit, widened by its spread to "
                               "the single-term warm-start fit")
-        _log(s, f"extended {extended['terms']}: held-out gain {g['gain']:.3g} [{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
+        _log(s, f"extended {extended['terms']}: held-out gain {_gci(g)}")
 
     # who carries the evidence: the subjects whose own held-out gain is above 0 (all, when none alone is)
     for e in results:
