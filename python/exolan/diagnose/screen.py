@@ -138,7 +138,7 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
         th_row = np.array([th_g.get(g, 0.0) for g in g_tr])[:, None]
         sse_g = float(((r_tr - th_row * a) ** 2).sum())
         if best_g is None or sse_g < best_g[0]:
-            best_g = (sse_g, th_g, extra, F_he)
+            best_g = (sse_g, th_g, extra, F_he, theta)
     if best is None:
         return dict(passes=False, theta=0.0, gain=0.0, ci=[0.0, 0.0], reason="feature is identically zero")
 
@@ -149,14 +149,14 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
     _, theta, extra, F_he = best
     b = held_gain(theta, F_he)
     sign_ok = theta > 0 if c.positive else True
-    _, th_g, extra_g, F_he_g = best_g
+    _, th_g, extra_g, F_he_g, theta_g = best_g
     bg = held_gain(np.array([th_g.get(g, 0.0) for g in g_he])[:, None], F_he_g)
     pooled_ok, grouped_ok = bool(b["mean"] > 0 and sign_ok), bool(bg["mean"] > 0)
     by_group = dict(gain=bg["mean"], ci=bg["ci"], theta={str(g): v for g, v in th_g.items()}, **extra_g)
     if grouped_ok and not pooled_ok:
-        # the grid variant (vs, d) of the per-group form; θ stays the pooled one (`procedure._screen_init` takes
-        # a warm start from it only where its sign is physical)
-        return dict(passes=True, theta=theta, gain=bg["mean"], ci=bg["ci"], sign_ok=True, reason="", form="per group",
+        # the grid variant (vs, d) of the per-group form, and its pooled θ (`procedure._screen_init` takes a
+        # warm start from it only where its sign is physical)
+        return dict(passes=True, theta=theta_g, gain=bg["mean"], ci=bg["ci"], sign_ok=True, reason="", form="per group",
                     pooled=dict(gain=b["mean"], ci=b["ci"]), by_group=by_group, **extra_g)
     reason = "" if pooled_ok else ("post-hoc estimate has the unphysical sign" if not sign_ok and b["mean"] > 0 else
                                    "no held-out gain even after the fact (one θ, or one per task)")
