@@ -154,7 +154,8 @@ def plot_gains(out: Path, results: list) -> str | None:
 
 RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none is tuned to a world):
 1. each candidate is first *screened* by a post-hoc least-squares correction of the reference residual
-   (fitted on training segments; it must lower held-out error on average, with the physical sign) — only a
+   (fitted on training segments; it must lower held-out error on average, with the physical sign; one correction
+   for all data, or one per task, since the model absorbs an effect unevenly across tasks) — only a
    lenient screen, since the fitted model has already absorbed part of any effect (a gain is also screened on the
    controller's own variation alone, the exo torque minus its copy of the joint torque: the copy is what the
    model absorbs);
