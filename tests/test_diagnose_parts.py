@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from exolan.diagnose import stats
-from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, train
-from exolan.diagnose.procedure import (Settings, _above_noise, _gain, _held_groups, _invariance_reason, _spread,
+from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, sample_groups, train
+from exolan.diagnose.procedure import (Settings, _above_noise, _gain, _invariance_reason, _spread,
                                        _track_lag)
 from exolan.diagnose.synthetic import two_link
 
@@ -325,7 +325,7 @@ def test_task_invariance_rest_gain_weights_each_task_by_its_z_score():
 
 def test_held_out_groups_fall_back_to_trials_for_a_single_task(arm):
     held = arm.index("held")
-    g, kind = _held_groups(arm, held)
+    g, kind = sample_groups(arm, held)
     assert kind == "trial" and len(set(g)) == 2
 
 

@@ -497,11 +497,6 @@ def _own_variation_passes(g: dict, sigma_r: float, k_own: float, k_term: float) 
     return bool(g["ci"][0] > 0 and _above_noise(g, sigma_r) and (k_own - 1.0) * (k_term - 1.0) > 0)
 
 
-def _held_groups(flat: Flat, held: torch.Tensor) -> tuple[np.ndarray, str]:
-    """Group label of every held-out sample for the task-invariance rule (`fit.sample_groups`)."""
-    return sample_groups(flat, held)
-
-
 def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=None, neutral: float = 0.0,
             twins: list | None = None, param_path: bool = True, family: int = 1) -> dict:
     """Rule 5: the held-out gain per group, and whether the evidence holds beyond the groups where it is largest.
@@ -848,7 +843,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     _log(s, f"reference held-out MSE {e_ref_user.mean():.4g} (N m/kg)²; refit noise σ_r {sigma_r:.3g} "
             f"({scale}, {len(deltas)} twin refits)")
 
-    groups, group_kind = _held_groups(flat, held)
+    groups, group_kind = sample_groups(flat, held)
 
     def invariance(d, fitted_model, effect, j):
         """Rule 5 for the held-out gain series d of (effect, joint j) as `fitted_model` carries it."""

@@ -92,15 +92,13 @@ def features(model, flat: Flat, idx: torch.Tensor, effect: str, j: int, train_r:
     raise ValueError(effect)
 
 
-def _per_group_theta(a: np.ndarray, r: np.ndarray, groups: np.ndarray, positive: bool) -> dict:
-    """Least-squares θ of r ≈ θ a within every group (a, r: (N, n)), held at 0 where the sign is unphysical."""
-    out = {}
-    for g in np.unique(groups):
-        m = groups == g
-        den = float((a[m] ** 2).sum())
-        th = float((a[m] * r[m]).sum()) / den if den > 0 else 0.0
-        out[g] = max(th, 0.0) if positive else th
-    return out
+def _per_group_theta(a: np.ndarray, r: np.ndarray, code: np.ndarray, n_groups: int, positive: bool) -> np.ndarray:
+    """Least-squares θ of r ≈ θ a within every group (a, r: (N, n); code: each row's group index), held at 0
+    where the sign is unphysical or the group's feature is zero."""
+    num = np.bincount(code, weights=(a * r).sum(1), minlength=n_groups)
+    den = np.bincount(code, weights=(a ** 2).sum(1), minlength=n_groups)
+    th = np.divide(num, den, out=np.zeros(n_groups), where=den > 0)
+    return np.maximum(th, 0.0) if positive else th
 
 
 def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int = 0) -> dict:
@@ -121,8 +119,11 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
     m_he = flat.mass[he].numpy().astype(np.float64)[:, None]
     r_tr = (flat.tau[tr] - predict(model, flat, tr)).numpy().astype(np.float64) / m_tr
     r_he = (flat.tau[he] - predict(model, flat, he)).numpy().astype(np.float64) / m_he
-    g_tr, _ = sample_groups(flat, tr)
-    g_he, _ = sample_groups(flat, he)
+    # group index of every row; a held-out group without training rows gets θ = 0 (the extra last slot)
+    labels, code_tr = np.unique(sample_groups(flat, tr)[0], return_inverse=True)
+    g_he = sample_groups(flat, he)[0]
+    at = np.minimum(np.searchsorted(labels, g_he), len(labels) - 1)
+    code_he = np.where(labels[at] == g_he, at, len(labels))
     c = LIBRARY[effect]
     best, best_g = None, None
     for (extra, F_tr), (_, F_he) in zip(features(model, flat, tr, effect, j), features(model, flat, he, effect, j)):
@@ -134,9 +135,8 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
         sse = float(((r_tr - theta * a) ** 2).sum())
         if best is None or sse < best[0]:
             best = (sse, theta, extra, F_he)
-        th_g = _per_group_theta(a, r_tr, g_tr, c.positive)
-        th_row = np.array([th_g.get(g, 0.0) for g in g_tr])[:, None]
-        sse_g = float(((r_tr - th_row * a) ** 2).sum())
+        th_g = np.append(_per_group_theta(a, r_tr, code_tr, len(labels), c.positive), 0.0)
+        sse_g = float(((r_tr - th_g[code_tr, None] * a) ** 2).sum())
         if best_g is None or sse_g < best_g[0]:
             best_g = (sse_g, th_g, extra, F_he, theta)
     if best is None:
@@ -150,9 +150,9 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
     b = held_gain(theta, F_he)
     sign_ok = theta > 0 if c.positive else True
     _, th_g, extra_g, F_he_g, theta_g = best_g
-    bg = held_gain(np.array([th_g.get(g, 0.0) for g in g_he])[:, None], F_he_g)
+    bg = held_gain(th_g[code_he, None], F_he_g)
     pooled_ok, grouped_ok = bool(b["mean"] > 0 and sign_ok), bool(bg["mean"] > 0)
-    by_group = dict(gain=bg["mean"], ci=bg["ci"], theta={str(g): v for g, v in th_g.items()}, **extra_g)
+    by_group = dict(gain=bg["mean"], ci=bg["ci"], theta={str(g): float(v) for g, v in zip(labels, th_g)}, **extra_g)
     if grouped_ok and not pooled_ok:
         # the grid variant (vs, d) of the per-group form, and its pooled θ (`procedure._screen_init` takes a
         # warm start from it only where its sign is physical)
