@@ -834,3 +834,47 @@ def test_the_own_variation_null_asks_for_a_gain_on_the_same_side_of_1():
     assert not _own_variation_passes(g, 1e-6, 1.2, 0.9)
     assert not _own_variation_passes(g, 5e-5, 1.39, 1.87)            # within the refit noise
     assert not _own_variation_passes(dict(g, ci=[-1e-6, 5e-5]), 1e-6, 1.39, 1.87)
+
+
+def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(monkeypatch):
+    """An effect of one user only (a knee damping of 2 N m s/rad in S01, none in S02): the post-hoc θ by subject
+    on the training rows differs (Cochran's Q) and only S01's clears its Bonferroni z, so the term is gated to
+    S01's trials. The same damping in both users, or in neither, keeps the pooled term (None)."""
+    from exolan.diagnose import procedure as P
+
+    rng = np.random.default_rng(4)
+    trials = []
+    for subj in ("S01", "S02"):
+        for rep in (1, 2):
+            for t in _leg_pair(T=2000, seed=rep + 7 * int(subj[-1])):
+                t.subject, t.name = subj, f"walk_{rep}_1"
+                t.qd = np.convolve(rng.normal(0, 1, 2040), np.hanning(41), "same")[20:-20, None] * [1, 1] / 4
+                trials.append(t)
+    flat = prepare(trials)
+    s01 = torch.as_tensor(np.array([flat.trial_meta[i]["subject"] == "S01" for i in flat.trial.numpy()]))
+
+    def with_residual(b01, b02):
+        resid = torch.zeros_like(flat.tau)
+        resid[:, 1] = torch.where(s01, b01, b02).to(flat.tau.dtype) * flat.qd[:, 1]
+        resid += torch.as_tensor(rng.normal(0, 0.05, resid.shape), dtype=resid.dtype) * flat.mass[:, None]
+        monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - resid[idx])
+
+    with_residual(2.0, 0.0)
+    form = P.subject_form(None, flat, "viscous_damping", 1, {})
+    assert form is not None and form["subjects"] == ["S01"]
+    assert form["theta_by_subject"]["S01"]["theta"] == pytest.approx(2.0, rel=0.05)
+    assert form["heterogeneity"]["p"] < 1e-6
+    on = np.array([m["subject"] == "S01" for m in flat.trial_meta], dtype=float)
+    np.testing.assert_array_equal(form["trials"], on)
+    # the gate reaches the model through the init of every fit (`_gated`), and only for this candidate's joint
+    init = P._gated({"viscous_damping": 1.0}, {"effect": "viscous_damping", "_subject_form": form}, 1)
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)], init=init)
+    assert ext.gated == ("viscous_damping",)
+    np.testing.assert_array_equal(ext.gate_trials()["viscous_damping"][1], on)
+    assert P._gated({"x": 1}, {"effect": "viscous_damping"}, 1) == {"x": 1}
+    for b01, b02 in ((2.0, 2.0), (0.0, 0.0)):
+        with_residual(b01, b02)
+        assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None, (b01, b02)
+    # a residual asking for negative damping in S01: no physical term to gate
+    with_residual(-2.0, 0.0)
+    assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None

@@ -170,6 +170,46 @@ def test_recording_terms_bias_and_gain():
         assert k > 0 and k == pytest.approx(math.exp(0.1 * raw), rel=1e-6)
 
 
+def test_a_gated_term_acts_on_its_own_trials_only():
+    """`init["gates"]`: a subject-specific term is the full term on the trials marked 1 and absent on the others,
+    for every kind of term (friction, delay, observation, recording); without `trial=` it acts everywhere."""
+    base = _base()
+    effects = [("viscous_damping", 1), ("coulomb_friction", 1), ("actuation_delay", 1), ("encoder_offset", 0),
+               ("strap_compliance", 1), ("torque_bias", 0), ("torque_gain", 1)]
+    init = {"viscous_damping": 1.3, "coulomb_friction": 0.8, "actuation_delay": 0.0125, "encoder_offset": 0.03,
+            "strap_compliance": 150.0, "torque_bias": 0.4, "torque_gain": 1.3}
+    whole = ExtendedModel(base, 2, effects, dt=0.005, max_delay=0.05, init=dict(init))
+    gates = {e: {j: [0.0, 1.0, 0.0]} for e, j in effects}
+    gated = ExtendedModel(base, 2, effects, dt=0.005, max_delay=0.05, init=dict(init, gates=gates))
+    assert gated.gated and set(gated.gate_trials()) == {e for e, _ in effects}
+    B = 12
+    g = torch.Generator().manual_seed(1)
+    q, qd, qdd = (torch.randn(B, 2, generator=g) for _ in range(3))
+    hist = torch.randn(B, 12, 2, generator=g)
+    z = _z(B, base); fv = torch.zeros(B)
+    trial = torch.tensor([0, 1, 2] * 4)
+    got = gated.inverse(q, qd, qdd, z, fv, hist, hist, hist, trial=trial)
+    on = trial == 1
+    want_on = whole.inverse(q, qd, qdd, z, fv, hist, hist, hist)
+    want_off = base.inverse(q, qd, qdd, z, fv)
+    assert torch.allclose(got[on], want_on[on], atol=1e-10)
+    assert torch.allclose(got[~on], want_off[~on], atol=1e-10)
+    assert not torch.allclose(want_on[~on], want_off[~on])          # the term does change those rows
+    assert torch.allclose(gated.inverse(q, qd, qdd, z, fv, hist, hist, hist), want_on, atol=1e-10)
+    # forward dynamics and the dissipation follow the same gate; passivity holds per sample
+    tau = torch.randn(B, 2, generator=g)
+    app = gated.applied_exo(hist, trial=trial)[0]
+    fd = gated.forward_dynamics(q, qd, tau, z, fv, hist[:, 0], app, trial=trial)
+    assert torch.allclose(fd[~on], base.forward_dynamics(q, qd, tau, z, fv)[~on], atol=1e-10)
+    assert bool((gated.dissipated_power(qd, trial=trial) >= 0).all())
+    assert torch.allclose(gated.dissipated_power(qd, trial=trial)[~on], torch.zeros(int((~on).sum())))
+    # a gate must name a term the model has, with one value per trial
+    with pytest.raises(ValueError, match="not among"):
+        ExtendedModel(base, 2, [("viscous_damping", 1)], init={"gates": {"coulomb_friction": {1: [1.0]}}})
+    with pytest.raises(ValueError, match="no such term"):
+        ExtendedModel(base, 2, [("viscous_damping", 1)], init={"gates": {"viscous_damping": {0: [1.0]}}})
+
+
 def test_ext_tensors_follow_the_design_names_and_shapes():
     base = _base()
     ext = ExtendedModel(base, 2, [("viscous_damping", 1), ("coulomb_friction", 0), ("stribeck_friction", 0),

@@ -163,6 +163,11 @@ class ExtendedModel(nn.Module):
     `coupled_damping=False` keeps D diagonal: each joint's own friction, as the diagnosis tests it.
     The base model's parameters stay trainable: `ext_parameters()` and `base_parameters()` separate the
     groups so that a joint refit can use a larger step for the few physical scalars.
+
+    Subject-specific terms: `init["gates"] = {effect: {joint: per-trial 0/1}}` switches a term off on the
+    trials marked 0 (an effect present in some users only: one user's loose strap, one exoskeleton unit's
+    friction). The per-sample gate needs the trial index (`trial=` of `inverse`, `forward_dynamics`, ...);
+    without it every term acts everywhere. Parameters are shared by the trials where the term is on.
     """
 
     def __init__(self, base: nn.Module, n: int, effects: Iterable[tuple[str, int]] = (), dt: float = 0.005,
@@ -186,8 +191,24 @@ class ExtendedModel(nn.Module):
             if int(j) not in self.effects[eff]:
                 self.effects[eff].append(int(j))
         init = dict(init or {})
+        gates = init.pop("gates", None) or {}
         n = self.n
         dtype = next(base.parameters()).dtype if any(True for _ in base.parameters()) else torch.float64
+        self.gated: tuple[str, ...] = ()
+        for eff, per_joint in gates.items():
+            if eff not in self.effects:
+                raise ValueError(f"gate for {eff!r}, which is not among the model's effects")
+            rows = {int(j): np.asarray(v, dtype=np.float64).reshape(-1) for j, v in per_joint.items()}
+            n_trials = {len(v) for v in rows.values()}
+            if len(n_trials) != 1:
+                raise ValueError(f"gates of {eff!r} differ in their number of trials")
+            g = torch.ones(n_trials.pop(), n, dtype=dtype)
+            for j, v in rows.items():
+                if j not in self.effects[eff]:
+                    raise ValueError(f"gate for {eff!r} on joint {j}, where the model has no such term")
+                g[:, j] = torch.as_tensor(v, dtype=dtype)
+            self.register_buffer(f"gate_{eff}", g, persistent=False)
+            self.gated += (eff,)
 
         def mask(eff):
             m = torch.zeros(n, dtype=dtype)
@@ -221,6 +242,17 @@ class ExtendedModel(nn.Module):
         self.gain_raw = start("torque_gain", 1.0, lambda k: math.log(max(k, 1e-3)) / 0.1)
         # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
         self.compliance_raw = start("strap_compliance", 1000.0, lambda k: sp(max(1.0 / k / 0.01, 1e-4)))
+
+    def gate(self, effect: str, trial: torch.Tensor | None):
+        """Per-sample on/off of a term, (B, n) at the rows' trial indices, or 1 (everywhere on)."""
+        if trial is None or effect not in self.gated:
+            return 1.0
+        return getattr(self, f"gate_{effect}")[trial]
+
+    def gate_trials(self) -> dict[str, dict[int, np.ndarray]]:
+        """The gates in `init["gates"]` form (only gated terms): carried to refits and exports."""
+        return {eff: {j: getattr(self, f"gate_{eff}")[:, j].cpu().numpy().copy() for j in self.effects[eff]}
+                for eff in self.gated}
 
     # -- physical parameters -----------------------------------------------------------------------
     def damping_matrix(self) -> torch.Tensor:
@@ -312,7 +344,7 @@ class ExtendedModel(nn.Module):
         x1 = torch.gather(hist, 1, i0 + 1)[:, 0]
         return (1.0 - frac) * x0 + frac * x1
 
-    def applied_exo(self, tau_e, tau_e_d=None, tau_e_dd=None):
+    def applied_exo(self, tau_e, tau_e_d=None, tau_e_dd=None, trial=None):
         """τ_e,app and its derivatives at the current sample, from (B, n) or history (B, K+1, n) inputs.
 
         The applied torque is the recorded one delayed by d where the delay term is active.
@@ -322,16 +354,16 @@ class ExtendedModel(nn.Module):
         if "actuation_delay" not in self.effects:
             return now(h), now(hd), now(hdd)
         d = self.delay()
-        m = self.mask_actuation_delay
+        m = self.mask_actuation_delay * self.gate("actuation_delay", trial)
         sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * x[:, 0]
         return sh(h), sh(hd), sh(hdd)
 
-    def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None):
+    def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None, trial=None):
         """Measured -> physical coordinates: remove the encoder offset and the strap deflection."""
         if "encoder_offset" in self.effects:
-            q = q - self.encoder_offset()
+            q = q - self.encoder_offset() * self.gate("encoder_offset", trial)
         if "strap_compliance" in self.effects and tau_app is not None:
-            c = self.compliance()
+            c = self.compliance() * self.gate("strap_compliance", trial)
             q = q - c * tau_app
             if tau_app_d is not None:
                 qd = qd - c * tau_app_d
@@ -339,59 +371,62 @@ class ExtendedModel(nn.Module):
                 qdd = qdd - c * tau_app_dd
         return q, qd, qdd
 
-    def friction(self, qd: torch.Tensor) -> torch.Tensor:
-        """Generalised dissipative force (the torque the actuators must add to overcome it)."""
+    def friction(self, qd: torch.Tensor, trial=None) -> torch.Tensor:
+        """Generalised dissipative force (the torque the actuators must add to overcome it). A gate scales a
+        joint's whole friction torque by 0 or 1 (D diagonal, as the diagnosis fits it), so passivity holds."""
         out = torch.zeros_like(qd)
         if "viscous_damping" in self.effects:
-            out = out + qd @ self.damping_matrix().T
+            out = out + (qd @ self.damping_matrix().T) * self.gate("viscous_damping", trial)
         sgn = torch.tanh(qd / self.coulomb_eps)
         if "coulomb_friction" in self.effects:
-            out = out + self.coulomb() * sgn
+            out = out + self.coulomb() * sgn * self.gate("coulomb_friction", trial)
         if "stribeck_friction" in self.effects:
             fs, vs = self.stribeck()
-            out = out + fs * torch.exp(-(qd / vs) ** 2) * sgn
+            out = out + fs * torch.exp(-(qd / vs) ** 2) * sgn * self.gate("stribeck_friction", trial)
         return out
 
-    def dissipated_power(self, qd: torch.Tensor) -> torch.Tensor:
+    def dissipated_power(self, qd: torch.Tensor, trial=None) -> torch.Tensor:
         """q̇ᵀ friction(q̇) (...,): never negative (passivity)."""
-        return (qd * self.friction(qd)).sum(-1)
+        return (qd * self.friction(qd, trial)).sum(-1)
 
-    def recording_terms(self, tau_e, tau_app) -> torch.Tensor:
+    def recording_terms(self, tau_e, tau_app, trial=None) -> torch.Tensor:
         """τ_rec − τ_physical: what the recorded total torque holds beyond the torque the limb feels."""
         out = torch.zeros_like(tau_e)
         if "actuation_delay" in self.effects:
+            # tau_app is the recorded torque itself where a gate has the delay off
             out = out + (tau_e - tau_app) * self.mask_actuation_delay
         if "torque_bias" in self.effects:
-            out = out + self.torque_bias()
+            out = out + self.torque_bias() * self.gate("torque_bias", trial)
         if "torque_gain" in self.effects:
-            out = out + self.gain_term() * tau_e
+            out = out + self.gain_term() * tau_e * self.gate("torque_gain", trial)
         return out
 
     # -- the model interface -----------------------------------------------------------------------
-    def inverse(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None):
+    def inverse(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None, trial=None):
         """Predicted recorded total torque τ_rec (B, n).
 
         tau_e, tau_e_d, tau_e_dd: recorded exo torque and its smoothed derivatives, either (B, n) for the
         current sample or (B, K+1, n) histories (column k = k samples earlier, clamped at the trial start;
-        `lag_table` builds the indices). The delay term needs the history.
+        `lag_table` builds the indices). The delay term needs the history. `trial` (B,): the rows' trial
+        indices, for gated (subject-specific) terms.
         """
-        return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd)[0]
+        return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd, trial)[0]
 
-    def inverse_inertia(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None):
+    def inverse_inertia(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None, trial=None):
         """(`inverse`, H): H(q, z) at the physical coordinates the base used, or None where the base does not
         expose its inertia (a fit's acceleration term reuses it instead of evaluating the network again)."""
         if tau_e is None:
             tau_e = torch.zeros_like(q)
         tau_now = self._hist(tau_e)[:, 0]
-        tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd)
-        qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd)
+        tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd, trial)
+        qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd, trial)
         if hasattr(self.base, "inverse_inertia"):
             tau, H = self.base.inverse_inertia(qt, qdt, qddt, z, f_v)
         else:
             tau, H = self.base.inverse(qt, qdt, qddt, z, f_v), None
-        return tau + self.friction(qdt) + self.recording_terms(tau_now, tau_app), H
+        return tau + self.friction(qdt, trial) + self.recording_terms(tau_now, tau_app, trial), H
 
-    def forward_dynamics(self, q, qd, tau, z, f_v, tau_e=None, tau_app=None):
+    def forward_dynamics(self, q, qd, tau, z, f_v, tau_e=None, tau_app=None, trial=None):
         """q̈ in *physical* coordinates (q, q̇ physical) for the recorded total torque τ.
 
         τ_phys = τ − recording terms; the friction opposes q̇. `tau_app` (delayed exo torque) defaults to
@@ -401,7 +436,7 @@ class ExtendedModel(nn.Module):
             tau_e = torch.zeros_like(q)
         if tau_app is None:
             tau_app = tau_e
-        tau_phys = tau - self.recording_terms(tau_e, tau_app) - self.friction(qd)
+        tau_phys = tau - self.recording_terms(tau_e, tau_app, trial) - self.friction(qd, trial)
         return self.base.forward_dynamics(q, qd, tau_phys, z, f_v)
 
     def terms(self, q, qd, z):

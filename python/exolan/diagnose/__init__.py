@@ -75,6 +75,16 @@ def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dic
     return res["report"]
 
 
+def _subject_terms(ext, flat) -> str:
+    """"effect:joint -> subjects" of an extended model's subject-specific (gated) terms, for file metadata."""
+    parts = []
+    for eff, per_joint in ext.gate_trials().items():
+        for j, on in per_joint.items():
+            users = sorted({flat.trial_meta[i]["subject"] for i in np.flatnonzero(on > 0)})
+            parts.append(f"{eff}:{flat.joints[j]} -> {'+'.join(users)}")
+    return "; ".join(parts)
+
+
 def _save_ext(out: Path, res: dict) -> None:
     """The extended model's `ext.*` tensors (float64, DESIGN.md section 4) as safetensors."""
     try:
@@ -86,14 +96,18 @@ def _save_ext(out: Path, res: dict) -> None:
     if t:
         meta = {"format": "exolan-ext", "joint_names": str(list(res["flat"].joints)),
                 "coulomb_eps": str(ext.coulomb_eps)}
+        if ext.gated:       # subject-specific terms: the file holds their values, to apply for those users only
+            meta["subject_terms"] = _subject_terms(ext, res["flat"])
         save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(out / "ext.safetensors"), metadata=meta)
     # the whole extended model in the engine's weight format, at the mean context of the trials
     from .fit import SlowContextDeLaN, export_extended
     if isinstance(ext.base, SlowContextDeLaN):
         try:
+            meta = {"train_note": "exolan diagnose: slow-context base at the mean trial context"}
+            if ext.gated:
+                meta["subject_terms"] = _subject_terms(ext, res["flat"]) + " (the file applies them for every user)"
             export_extended(ext, out / "extended.safetensors", ext.base.codes.weight.detach().mean(0),
-                            joint_names=res["flat"].joints, dt=res["flat"].dt,
-                            meta={"train_note": "exolan diagnose: slow-context base at the mean trial context"})
+                            joint_names=res["flat"].joints, dt=res["flat"].dt, meta=meta)
         except Exception as exc:  # the report stands without the export; say why
             (out / "extended_export_error.txt").write_text(repr(exc))
 

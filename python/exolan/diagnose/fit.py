@@ -612,15 +612,22 @@ def _inputs(model, base, flat: Flat, b: torch.Tensor) -> tuple:
     return args + tuple(ex)
 
 
+def _gate_kw(model, flat: Flat, b: torch.Tensor) -> dict:
+    """`trial=` for a model with subject-specific (gated) terms: they act on their own trials only."""
+    return {"trial": flat.trial[b]} if getattr(model, "gated", ()) else {}
+
+
 def _forward(model, base, flat: Flat, b: torch.Tensor) -> torch.Tensor:
-    return model.inverse(*_inputs(model, base, flat, b))
+    return model.inverse(*_inputs(model, base, flat, b), **_gate_kw(model, flat, b))
 
 
 def _forward_inertia(model, base, flat: Flat, b: torch.Tensor):
     """(τ̂, H) at rows b, H the inertia the inverse dynamics used: one evaluation of the inertia network per
     fit step instead of two (evaluated here only where the model does not expose it)."""
     args = _inputs(model, base, flat, b)
-    tau, H = model.inverse_inertia(*args) if hasattr(model, "inverse_inertia") else (model.inverse(*args), None)
+    kw = _gate_kw(model, flat, b)
+    tau, H = (model.inverse_inertia(*args, **kw) if hasattr(model, "inverse_inertia")
+              else (model.inverse(*args, **kw), None))
     return tau, (H if H is not None else inertia_of(model, flat.q[b], args[3]))
 
 

@@ -66,6 +66,12 @@ A post-hoc screen (`screen.py`) first discards candidates whose least-squares co
 residual (one θ for all data, or one per task) does not help held-out data even after the fact; only the
 rest are refitted (the expensive step).
 
+Subject-specific terms (`subject_form`): where the data hold several subjects, a screened candidate whose
+post-hoc correction on the training rows is wanted by some subjects and not by the others is fitted as a term of
+those subjects only (gated off on the others' trials, `ExtendedModel`'s `gates`), through every rule, refit and
+the extended model alike; the finding's `subjects` are then those users. A term shared by all users would fit a
+diluted value that helps some users and hurts the others.
+
 The extended model holds every accepted term and is refitted *from scratch* (fresh base, the accepted terms
 present from the first step, the reference's total budget): a warm start keeps what the base already
 absorbed of an effect and biases its parameter low, while a fresh fit carries the noise of a whole base fit.
@@ -110,7 +116,7 @@ from ..extensions import ExtendedModel
 from . import residuals as R
 from . import stats
 from .candidates import FITTED, LIBRARY, NESTS, nested_choice, rivals
-from .screen import screen
+from .screen import features, screen
 from .fit import (DTYPE, Flat, _base_of, _forward, exo_copy, exo_own, extend, make_base, misfit_weights, predict,
                   prepare, sample_groups, sq_errors, train)
 
@@ -180,7 +186,8 @@ def _future_null(base, flat: Flat, entry: dict, j: int, lag: int, s: Settings):
     k[j] = lag
     adv = _advanced(flat, k)
     max_delay = min(s.max_delay, lag * flat.dt) if effect == "actuation_delay" else s.max_delay
-    null = extend(base, adv, [(effect, j)], init=_screen_init(effect, entry.get("screen", {})), max_delay=max_delay)
+    null = extend(base, adv, [(effect, j)], init=_gated(_screen_init(effect, entry.get("screen", {})), entry, j),
+                  max_delay=max_delay)
     return null, adv, dict(future_lag_s=float(lag * flat.dt)), f"exo torque {lag} samples in the future"
 
 
@@ -337,6 +344,68 @@ def _param_by_group(model: ExtendedModel, flat: Flat, effect: str, j: int, held:
     return out
 
 
+def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | None:
+    """Whether (effect, joint j) looks like a property of some subjects only, from the training rows alone.
+
+    An effect may sit in some users only (one user's strap, one exoskeleton unit's friction). A term shared by
+    every subject then fits a diluted value that helps the subjects who have it and hurts the others, and the
+    fit weights (the base misfits those users' trials most) shrink the evidence further: a knee damping of 2.0
+    planted in one of two users came out 0.23 pooled and was rejected, its held-out gain +9.7e-4 for that user
+    and −1.8e-4 for the other (measured, test settings, world seed 31); the same user's data alone found 1.95.
+
+    Per subject, the post-hoc θ of the screen's feature (its grid variant, `sc`) on the model's training
+    residual, with its HAC SE. The term is gated to the subjects whose θ has the physical sign and clears
+    z = Φ⁻¹(1 − 0.025/n_subjects) (Bonferroni over the subjects) when the others do not, and the subjects' θ
+    differ (Cochran's Q, p < 0.05). Post-hoc θ is biased towards 0 (the model has absorbed part of the effect),
+    so it only chooses the form; the gated term is fitted jointly and must pass every rule like any other.
+    Returns None for a pooled term (every subject, or data with one subject).
+    """
+    tr = flat.index("train")
+    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[tr].numpy()])
+    users = sorted(set(subj.tolist()))
+    if len(users) < 2:
+        return None
+    variants = features(model, flat, tr[:1], effect, j)
+    keys = [k for k in ("d", "vs") if k in sc]
+    pick = next((i for i, (extra, _) in enumerate(variants) if all(extra.get(k) == sc[k] for k in keys)), 0)
+    c = LIBRARY[effect]
+    th, se = {}, {}
+    for u in users:
+        idx = tr[torch.as_tensor(subj == u)]
+        if len(idx) > 20000:
+            idx = idx[torch.linspace(0, len(idx) - 1, 20000).long()]
+        m = flat.mass[idx].numpy().astype(np.float64)
+        a = features(model, flat, idx, effect, j)[pick][1][:, j] / m
+        r = (flat.tau[idx, j] - predict(model, flat, idx)[:, j]).numpy().astype(np.float64) / m
+        if not np.std(a) > 0:
+            return None
+        th[u], se[u], _ = _hac_step(a, r, len(idx))
+    t = np.array([th[u] for u in users]); w = 1.0 / np.square([se[u] for u in users])
+    Q = float(np.sum(w * (t - np.sum(w * t) / np.sum(w)) ** 2))
+    p_het = float(scipy_stats.chi2.sf(Q, len(users) - 1))
+    z_crit = float(scipy_stats.norm.ppf(1 - 0.025 / len(users)))
+    z = {u: th[u] / se[u] for u in users}
+    on = [u for u in users if (z[u] if c.positive else abs(z[u])) > z_crit]
+    out = dict(theta_by_subject={u: dict(theta=float(th[u]), se=float(se[u])) for u in users},
+               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit)
+    if not (0 < len(on) < len(users) and p_het < 0.05):
+        return None
+    trial_on = np.array([flat.trial_meta[i]["subject"] in on for i in range(len(flat.trial_meta))], dtype=float)
+    return dict(out, subjects=on, trials=trial_on)
+
+
+def _gated(init: dict, entry: dict, j: int) -> dict:
+    """`init` with the candidate's subject gate (`subject_form`) on joint j, where it has one."""
+    form = entry.get("_subject_form")
+    if not form:
+        return init
+    out = dict(init)
+    gates = {k: dict(v) for k, v in (out.get("gates") or {}).items()}
+    gates.setdefault(entry["effect"], {})[j] = form["trials"]
+    out["gates"] = gates
+    return out
+
+
 def _with_refit_spread(pci: dict, other: dict) -> dict:
     """The joint fit's estimate with an interval that includes the optimisation's own uncertainty.
 
@@ -414,6 +483,8 @@ def _with_init(init: dict, values: dict, j: int) -> dict:
     """`init` (ExtendedModel's warm start: effect → number or {joint: number}) with `values` set on joint j
     only: two accepted terms of one effect on different joints keep their own starts."""
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in init.items()}
+    if "gates" in out:
+        out["gates"] = {k: dict(v) for k, v in out["gates"].items()}
     for k, v in values.items():
         out[k] = {**(out[k] if isinstance(out.get(k), dict) else {}), j: float(v)}
     return out
@@ -674,7 +745,7 @@ INERTIA_CONFUSED = ("actuation_delay",)
 
 def _with_estimate(init: dict, entry: dict, j: int) -> dict:
     """`init` with a candidate's single-term estimate as the start of its term at joint j (and Stribeck's vs)."""
-    init = _with_init(init, {entry["effect"]: entry["estimate"]}, j)
+    init = _gated(_with_init(init, {entry["effect"]: entry["estimate"]}, j), entry, j)
     if entry["effect"] == "stribeck_friction":
         init = _with_init(init, {"stribeck_vs": entry.get("vs", 0.1)}, j)
     return init
@@ -760,7 +831,7 @@ def _around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effec
     reference refitted once more: this reference's own twins, refitted from it, gained 1.2e-5 to 2.6e-5 (it was
     not converged), a bias in favour of any model with one more refit.
     """
-    m = extend(base, flat, list(effects), max_delay=s.max_delay)
+    m = extend(base, flat, list(effects), init={"gates": fresh.gate_trials()}, max_delay=s.max_delay)
     with torch.no_grad():       # every term's parameter is the joint fit's
         for p, q in zip(m.ext_parameters(), fresh.ext_parameters(), strict=True):
             p.copy_(q)
@@ -893,7 +964,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                         f"{sc['reason']}")
                 continue
             t1 = time.time()
-            init = _screen_init(effect, sc)
+            form = subject_form(ref, flat, effect, j, sc) if len(subjects) > 1 else None
+            if form is not None:
+                entry.update(subjects=form["subjects"], _subject_form=form)
+                _log(s, f"{effect:18s} {name:9s} a term of {', '.join(form['subjects'])} only: post-hoc θ by subject "
+                        + ", ".join(f"{u} {v['theta']:.3g} ± {v['se']:.2g}" for u, v in form["theta_by_subject"].items())
+                        + f" (Q's p {form['heterogeneity']['p']:.2g})")
+            init = _gated(_screen_init(effect, sc), entry, j)
             ext = extend(base, flat, [(effect, j)], init=init, max_delay=s.max_delay)
             _refit(ext, flat, s)
             e_user, e = held_errors(ext)
@@ -951,7 +1028,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # difference is noisy; a hip gain of 1.87 beat that null by 1.9e-5 [-1.1e-5, 5.3e-5] (world
             # seed 6079), its warm k 1.56 overshooting the own variation's share while holding the copy's.
             own = exo_own(flat, j)
-            init = _screen_init(entry["effect"], entry.get("screen", {}))
+            init = _gated(_screen_init(entry["effect"], entry.get("screen", {})), entry, j)
             alone = extend(base, own, [(entry["effect"], j)], init=init, max_delay=s.max_delay)
             _refit(alone, own, s)
             gn = _gain(e_ref, held_errors(alone, own)[1], s)
@@ -1065,7 +1142,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # single-term 9.9 N instead of 3 and lost); no physical post-hoc value: it starts at no effect
             sc = screen(cur_model, flat, e["effect"], jj, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
             start = _screen_init(e["effect"], sc)
-            init = _with_init(given_init, start, jj)
+            init = _gated(_with_init(given_init, start, jj), e, jj)
             both = extend(base, flat, given + [(e["effect"], jj)], init=init, max_delay=s.max_delay)
             _refit(both, flat, s)
             u_both, e_both = held_errors(both)
@@ -1222,6 +1299,12 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
 
     # who carries the evidence: the subjects whose own held-out gain is above 0 (all, when none alone is)
     for e in results:
+        if e.get("_subject_form"):      # a subject-specific term: fitted on those subjects' trials only
+            e["subject_form"] = {k: v for k, v in e["_subject_form"].items() if k != "trials"}
+            if e["status"] == "accepted":
+                e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
+                    "a term of " + ", ".join(e["subjects"]) + " only (fitted on their trials; `subject_form`)"
+            continue
         if e["status"] == "accepted" and e.get("subject_gains"):
             sig = sorted(k for k, v in e["subject_gains"].items() if v["ci"][0] > 0)
             if sig and len(sig) < len(e["subject_gains"]):
@@ -1246,7 +1329,7 @@ _PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "e
            "heldout_gain", "decision_gain", "status", "reason",
            "heldout_gain_ci", "relative_gain", "relative_gain_ci", "identifiable", "null_gain", "nulls", "rivals", "vs",
            "estimate_warm_start", "ci_warm_start", "ci_identification", "ci_method", "note", "kind", "conditional_gain",
-           "screen")
+           "screen", "subject_form")
 
 
 def _public(e: dict) -> dict:

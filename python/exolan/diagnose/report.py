@@ -195,7 +195,11 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    the base was fitted here; the extended model with the terms at their joint estimates must beat the base on
    held-out data as in rule 1 (fitted from scratch, or else the base's own refit with the terms held there,
    beyond the refit noise; Bonferroni over the two), or its terms are `ambiguous`;
-7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings)."""
+7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings).
+Where the data hold several subjects, a candidate whose post-hoc correction on the training rows is wanted by
+some subjects only (their θ clears a Bonferroni z over the subjects, the others' does not, Cochran's Q p < 0.05)
+is fitted as a term of those subjects only (switched off on the other subjects' trials) and judged by the same
+rules."""
 
 
 def write(out: Path, res: dict) -> dict:
@@ -262,6 +266,13 @@ def _evidence_lines(f: dict) -> list[str]:
                 f"reference by" if n.get("own_variation_only") else
                 f"beats the same term on the exo torque {_fmt(1e3 * n['future_lag_s'], 3)} ms in the future by")
         out.append(f"  - null: {what} {_fmt(n['gain'], 3)} CI {_fmt(n['ci'], 3)}{'' if n.get('passes') else ' (not passed)'}")
+    sf = f.get("subject_form") or {}
+    if sf.get("subjects"):
+        th = ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in sf["theta_by_subject"].items())
+        het = sf.get("heterogeneity") or {}
+        out.append(f"  - a term of {', '.join(sf['subjects'])} only (fitted on their trials): post-hoc θ by subject on "
+                   f"the training rows (HAC SE) {th}; Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, "
+                   f"p {_fmt(het.get('p'), 2)}")
     sg = f.get("subject_gains") or {}
     if sg:
         out.append("  - gain by subject: " + ", ".join(f"{k} {_fmt(v['gain'], 3)} {_fmt(v['ci'], 3)}" for k, v in sg.items()))

@@ -119,8 +119,9 @@ def rollout_errors(model, flat: Flat, starts: torch.Tensor, horizon: int = 20) -
                 z = torch.zeros_like(flat.q[i])
                 return z, z
             he, hd, hdd = flat.exo_hist(i)
-            app, app_d, _ = ext.applied_exo(he, hd, hdd)
-            qt, qdt, _ = ext.true_state(flat.q[i], flat.qd[i], None, app, app_d, None)
+            tr = flat.trial[i]
+            app, app_d, _ = ext.applied_exo(he, hd, hdd, trial=tr)
+            qt, qdt, _ = ext.true_state(flat.q[i], flat.qd[i], None, app, app_d, None, trial=tr)
             return flat.q[i] - qt, flat.qd[i] - qdt
 
         i = starts.clone()
@@ -133,8 +134,9 @@ def rollout_errors(model, flat: Flat, starts: torch.Tensor, horizon: int = 20) -
                 qdd = base.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i))
             else:
                 he, hd, hdd = flat.exo_hist(i)
-                app, _, _ = ext.applied_exo(he, hd, hdd)
-                qdd = ext.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i), flat.tau_e[i], app)
+                app, _, _ = ext.applied_exo(he, hd, hdd, trial=flat.trial[i])
+                qdd = ext.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i), flat.tau_e[i], app,
+                                           trial=flat.trial[i])
             qd = qd + dt * qdd
             q = q + dt * qd
             i = i + 1
