@@ -878,3 +878,15 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(mo
     # a residual asking for negative damping in S01: no physical term to gate
     with_residual(-2.0, 0.0)
     assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
+
+
+def test_an_extended_models_files_name_the_subjects_of_its_gated_terms():
+    """The weight files hold a subject-specific term's value for every user (the engine has no gates): their
+    metadata says which users it belongs to."""
+    from exolan.diagnose import _subject_terms
+
+    flat = prepare(_leg_pair(T=200))
+    flat.trial_meta = [dict(subject="S01"), dict(subject="S02")]
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1), ("coulomb_friction", 0)],
+                 init={"gates": {"viscous_damping": {1: [0.0, 1.0]}}})
+    assert _subject_terms(ext, flat) == "viscous_damping:knee -> S02"

@@ -366,7 +366,7 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | Non
     if len(users) < 2:
         return None
     variants = features(model, flat, tr[:1], effect, j)
-    keys = [k for k in ("d", "vs") if k in sc]
+    keys = [k for k in ("d", "vs", "own_variation") if k in sc]      # the screen's grid variant
     pick = next((i for i, (extra, _) in enumerate(variants) if all(extra.get(k) == sc[k] for k in keys)), 0)
     c = LIBRARY[effect]
     th, se = {}, {}

@@ -315,7 +315,8 @@ def markdown(rep: dict) -> str:
     if findings:
         for f in findings:
             unit = "" if f["unit"] == "1" else f" {f['unit']}"      # a gain is a pure number
-            L.append(f"- **{f['effect']}** on **{f['joint']}**: {_fmt(f['estimate'])}{unit} "
+            who = f" of **{', '.join(f['subjects'])}** only" if (f.get("subject_form") or {}).get("subjects") else ""
+            L.append(f"- **{f['effect']}** on **{f['joint']}**{who}: {_fmt(f['estimate'])}{unit} "
                      f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
             if f.get("ci_identification") is not None:
@@ -366,10 +367,11 @@ def markdown(rep: dict) -> str:
         L.append(f"| {j} | {_fmt(r['rms'])} | {_fmt(lb, 3)} | {r['block_length']} | {bs} |")
     L.append("")
     L.append("## Every candidate")
-    L.append("| effect | joint | status | estimate | 95% CI | unit | held-out gain [CI] | reason |")
-    L.append("|---|---|---|---|---|---|---|---|")
+    L.append("| effect | joint | subjects | status | estimate | 95% CI | unit | held-out gain [CI] | reason |")
+    L.append("|---|---|---|---|---|---|---|---|---|")
     for e in findings + rep["rejected"]:
-        L.append(f"| {e['effect']} | {e['joint']} | {e['status']} | {_fmt(e.get('estimate'))} | {_fmt(e.get('ci'), 3)} | "
+        who = ", ".join(e["subjects"]) if (e.get("subject_form") or {}).get("subjects") else "all"
+        L.append(f"| {e['effect']} | {e['joint']} | {who} | {e['status']} | {_fmt(e.get('estimate'))} | {_fmt(e.get('ci'), 3)} | "
                  f"{e.get('unit', '')} | {_fmt(e.get('heldout_gain'), 3)} {_fmt(e.get('heldout_gain_ci'), 3)} | "
                  f"{e.get('reason', '')} |")
     L.append("")
