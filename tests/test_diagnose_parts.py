@@ -878,6 +878,11 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(mo
     # a residual asking for negative damping in S01: no physical term to gate
     with_residual(-2.0, 0.0)
     assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
+    # recordings whose "subject" is their file's name (layout 2 without one) are not users: no gate
+    with_residual(2.0, 0.0)
+    for m in flat.trial_meta:
+        m["name"] = m["subject"]
+    assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
 
 
 def test_an_extended_models_files_name_the_subjects_of_its_gated_terms():

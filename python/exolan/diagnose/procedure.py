@@ -363,8 +363,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | Non
     tr = flat.index("train")
     subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[tr].numpy()])
     users = sorted(set(subj.tolist()))
-    if len(users) < 2:
-        return None
+    if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
+        return None     # one subject, or recordings named after their files (layout 2 without a subject column)
     variants = features(model, flat, tr[:1], effect, j)
     keys = [k for k in ("d", "vs", "own_variation") if k in sc]      # the screen's grid variant
     pick = next((i for i, (extra, _) in enumerate(variants) if all(extra.get(k) == sc[k] for k in keys)), 0)
