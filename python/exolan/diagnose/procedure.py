@@ -1297,7 +1297,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                               "the single-term warm-start fit")
         _log(s, f"extended {extended['terms']}: held-out gain {_gci(g)}")
 
-    # who carries the evidence: the subjects whose own held-out gain is above 0 (all, when none alone is)
+    # `subjects`: the users a finding's term acts on — a subject-specific term's own (`subject_form`), else all.
+    # A shared term whose held-out gain clears 0 for some users only says so in a note: the training rows found
+    # no difference between the users (else it would be a subject-specific term), and a user's interval that
+    # reaches 0 is a lack of power there, not evidence that the effect is absent
     for e in results:
         if e.get("_subject_form"):      # a subject-specific term: fitted on those subjects' trials only
             e["subject_form"] = {k: v for k, v in e["_subject_form"].items() if k != "trials"}
@@ -1308,7 +1311,6 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         if e["status"] == "accepted" and e.get("subject_gains"):
             sig = sorted(k for k, v in e["subject_gains"].items() if v["ci"][0] > 0)
             if sig and len(sig) < len(e["subject_gains"]):
-                e["subjects"] = sig
                 e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
                     "held-out gain above 0 only for " + ", ".join(sig) + " (parameter fitted on all subjects)"
     findings = [_public(e) for e in results if e["status"] == "accepted"]
