@@ -365,21 +365,26 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | Non
     users = sorted(set(subj.tolist()))
     if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
         return None     # one subject, or recordings named after their files (layout 2 without a subject column)
-    variants = features(model, flat, tr[:1], effect, j)
-    keys = [k for k in ("d", "vs", "own_variation") if k in sc]      # the screen's grid variant
-    pick = next((i for i, (extra, _) in enumerate(variants) if all(extra.get(k) == sc[k] for k in keys)), 0)
-    c = LIBRARY[effect]
-    th, se = {}, {}
+    rows = []                   # each subject's training rows, in time order (at most 20000 per subject)
     for u in users:
         idx = tr[torch.as_tensor(subj == u)]
-        if len(idx) > 20000:
-            idx = idx[torch.linspace(0, len(idx) - 1, 20000).long()]
-        m = flat.mass[idx].numpy().astype(np.float64)
-        a = features(model, flat, idx, effect, j)[pick][1][:, j] / m
-        r = (flat.tau[idx, j] - predict(model, flat, idx)[:, j]).numpy().astype(np.float64) / m
+        rows.append(idx[torch.linspace(0, len(idx) - 1, 20000).long()] if len(idx) > 20000 else idx)
+    idx = torch.cat(rows)
+    keys = [k for k in ("d", "vs", "own_variation") if k in sc]      # the screen's grid variant
+    variants = features(model, flat, idx, effect, j)
+    F = next((F for extra, F in variants if all(extra.get(k) == sc[k] for k in keys)), variants[0][1])
+    m = flat.mass[idx].numpy().astype(np.float64)
+    a_all = F[:, j] / m
+    r_all = (flat.tau[idx, j] - predict(model, flat, idx)[:, j]).numpy().astype(np.float64) / m
+    c = LIBRARY[effect]
+    th, se = {}, {}
+    start = 0
+    for u, rw in zip(users, rows):
+        a, r = a_all[start:start + len(rw)], r_all[start:start + len(rw)]
+        start += len(rw)
         if not np.std(a) > 0:
             return None
-        th[u], se[u], _ = _hac_step(a, r, len(idx))
+        th[u], se[u], _ = _hac_step(a, r, len(rw))
     t = np.array([th[u] for u in users]); w = 1.0 / np.square([se[u] for u in users])
     Q = float(np.sum(w * (t - np.sum(w * t) / np.sum(w)) ** 2))
     p_het = float(scipy_stats.chi2.sf(Q, len(users) - 1))
