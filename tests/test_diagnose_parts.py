@@ -895,3 +895,21 @@ def test_an_extended_models_files_name_the_subjects_of_its_gated_terms():
     ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1), ("coulomb_friction", 0)],
                  init={"gates": {"viscous_damping": {1: [0.0, 1.0]}}})
     assert _subject_terms(ext, flat) == "viscous_damping:knee -> S02"
+
+
+def test_rollouts_of_a_gated_term_follow_each_starts_trial():
+    """Open-loop rollouts (`residuals.rollout_errors`) integrate a subject-specific term only from the starts in
+    its own trials: there the errors are the ungated model's, elsewhere the base model's."""
+    from exolan.diagnose.residuals import rollout_errors
+
+    flat = prepare(_leg_pair(T=300))
+    base = make_base(flat, hidden=8)
+    T = 300
+    starts = torch.tensor([10, 50, 120, T + 10, T + 50, T + 120])
+    whole = extend(base, flat, [("viscous_damping", 1)], init={"viscous_damping": 3.0})
+    gated = extend(base, flat, [("viscous_damping", 1)], init={"viscous_damping": 3.0,
+                                                                "gates": {"viscous_damping": {1: [0.0, 1.0]}}})
+    e_g, e_w, e_b = (rollout_errors(m, flat, starts, horizon=8)["q_per_start"] for m in (gated, whole, base))
+    np.testing.assert_allclose(e_g[:3], e_b[:3], rtol=1e-9)      # trial 0: the term is off
+    np.testing.assert_allclose(e_g[3:], e_w[3:], rtol=1e-9)      # trial 1: on
+    assert not np.allclose(e_w[:3], e_b[:3])
