@@ -298,6 +298,12 @@ def test_a_damping_in_one_subject_only_is_found_on_that_subject(tmp_path):
     assert f["subjects"] == [user] and f["subject_form"]["subjects"] == [user], msg
     assert abs(f["estimate"] - value) <= 0.2 * value and f["heldout_gain"] > 0, msg
     assert "only (fitted on their trials" in (tmp_path / "diag" / "diagnosis.md").read_text()
+    # one engine file per user: the damping in the user's own, not in the other's
+    from safetensors import safe_open
+
+    for u in ("S01", "S02"):
+        with safe_open(str(tmp_path / "diag" / f"extended_{u}.safetensors"), "np") as fh:
+            assert ("ext.damping" in fh.keys()) == (u == user), msg
 
 
 @pytest.mark.slow

@@ -106,3 +106,26 @@ def test_a_lim_that_sees_the_centre_of_pressure_exports_at_its_training_mean(tmp
     t_eng = eng.inverse_dynamics(q.numpy(), qd.numpy(), qdd.numpy(), f_v=fv.numpy())
     assert np.abs(t_eng - at_mean).max() <= 1e-9 * np.abs(at_mean).max()
     assert "centre-of-pressure input is held at its training mean (0.130 m)" in eng.metadata["omitted"]
+
+
+def test_a_users_export_holds_that_users_subject_specific_terms_and_matches_torch(tmp_path):
+    """The engine has no gates: a user's file (`export_extended(..., trial=)`) holds the terms that act on that
+    user's trials and agrees with the gated torch model there; a user without the gated term gets none."""
+    effects = [("viscous_damping", 1), ("coulomb_friction", 0)]
+    torch.manual_seed(0)
+    b = SlowContextDeLaN(("revolute", "revolute"), 3, z_dim=4, hidden=16, lim=True, v_scale=5.0).double()
+    ext = ExtendedModel(b, 2, effects, dt=0.005, max_delay=0.05,
+                        init=dict(ALL, gates={"viscous_damping": {1: [1.0, 0.0, 1.0]}})).double()
+    B = 32
+    g = torch.Generator().manual_seed(2)
+    q, qd, qdd = (torch.randn(B, 2, generator=g, dtype=torch.float64) for _ in range(3))
+    fv = 300 * torch.rand(B, generator=g, dtype=torch.float64)
+    for trial, has_damping in ((0, True), (1, False)):
+        z = b.codes.weight[trial].detach()
+        path, _ = export_extended(ext, tmp_path / f"t{trial}.safetensors", z, trial=trial)
+        eng = engine.Engine(str(path))
+        assert ("ext.damping" in eng.extensions) == has_damping and "ext.coulomb" in eng.extensions
+        with torch.no_grad():
+            t_torch = ext.inverse(q, qd, qdd, z.expand(B, 4), fv, trial=torch.full((B,), trial)).numpy()
+        t_eng = eng.inverse_dynamics(q.numpy(), qd.numpy(), qdd.numpy(), f_v=fv.numpy())
+        assert np.abs(t_eng - t_torch).max() <= 1e-9 * np.abs(t_torch).max()

@@ -103,11 +103,22 @@ def _save_ext(out: Path, res: dict) -> None:
     from .fit import SlowContextDeLaN, export_extended
     if isinstance(ext.base, SlowContextDeLaN):
         try:
+            flat = res["flat"]
             meta = {"train_note": "exolan diagnose: slow-context base at the mean trial context"}
             if ext.gated:
-                meta["subject_terms"] = _subject_terms(ext, res["flat"]) + " (the file applies them for every user)"
-            export_extended(ext, out / "extended.safetensors", ext.base.codes.weight.detach().mean(0),
-                            joint_names=res["flat"].joints, dt=res["flat"].dt, meta=meta)
+                meta["subject_terms"] = (_subject_terms(ext, flat) + " (this file applies them for every user; "
+                                         "extended_<subject>.safetensors hold each user's own terms)")
+            codes = ext.base.codes.weight.detach()
+            export_extended(ext, out / "extended.safetensors", codes.mean(0), joint_names=flat.joints, dt=flat.dt,
+                            meta=meta)
+            # with subject-specific terms, one file per user: that user's terms at the mean of their trials' codes
+            users = sorted({m["subject"] for m in flat.trial_meta}) if ext.gated else []
+            for u in users:
+                rows = [i for i, m in enumerate(flat.trial_meta) if m["subject"] == u]
+                export_extended(ext, out / f"extended_{u}.safetensors", codes[rows].mean(0), joint_names=flat.joints,
+                                dt=flat.dt, trial=rows[0],
+                                meta={"train_note": f"exolan diagnose: slow-context base at the mean context of "
+                                                    f"{u}'s trials, with {u}'s terms", "subject": u})
         except Exception as exc:  # the report stands without the export; say why
             (out / "extended_export_error.txt").write_text(repr(exc))
 

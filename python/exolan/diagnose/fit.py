@@ -792,12 +792,16 @@ def to_exo_model(base: SlowContextDeLaN, z: torch.Tensor, joint_names=None):
 
 
 def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None, dt: float | None = None,
-                    meta: dict | None = None):
-    """Export base (at context z) + `ext.*` tensors through `exolan.export` (the Rust engine's format)."""
+                    meta: dict | None = None, trial: int | None = None):
+    """Export base (at context z) + `ext.*` tensors through `exolan.export` (the Rust engine's format).
+
+    `trial`: a subject-specific (gated) term is written only where it acts on that trial (the engine has no
+    gates: one file per user); without it every term is written."""
     from ..export import export
 
     exo = to_exo_model(ext.base, z, joint_names)
-    eff = [(e, j) for e, js in ext.effects.items() for j in js]
+    on = lambda e, j: trial is None or e not in ext.gated or float(getattr(ext, f"gate_{e}")[trial, j]) > 0
+    eff = [(e, j) for e, js in ext.effects.items() for j in js if on(e, j)]
     twin = ExtendedModel(exo, ext.n, eff, dt=ext.dt, max_delay=ext.max_delay, coulomb_eps=ext.coulomb_eps,
                          coupled_damping=ext.coupled_damping).to(torch.float64)
     with torch.no_grad():
