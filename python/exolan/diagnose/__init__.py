@@ -91,22 +91,22 @@ def _save_ext(out: Path, res: dict) -> None:
         from safetensors.numpy import save_file
     except ImportError:
         return
-    ext = res["ext_model"]
+    ext, flat = res["ext_model"], res["flat"]
+    # subject-specific terms: the files hold their values, to apply for those users only
+    who = _subject_terms(ext, flat) if ext.gated else None
     t = ext.ext_tensors()
     if t:
-        meta = {"format": "exolan-ext", "joint_names": str(list(res["flat"].joints)),
-                "coulomb_eps": str(ext.coulomb_eps)}
-        if ext.gated:       # subject-specific terms: the file holds their values, to apply for those users only
-            meta["subject_terms"] = _subject_terms(ext, res["flat"])
+        meta = {"format": "exolan-ext", "joint_names": str(list(flat.joints)), "coulomb_eps": str(ext.coulomb_eps)}
+        if who:
+            meta["subject_terms"] = who
         save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(out / "ext.safetensors"), metadata=meta)
     # the whole extended model in the engine's weight format, at the mean context of the trials
     from .fit import SlowContextDeLaN, export_extended
     if isinstance(ext.base, SlowContextDeLaN):
         try:
-            flat = res["flat"]
             meta = {"train_note": "exolan diagnose: slow-context base at the mean trial context"}
-            if ext.gated:
-                meta["subject_terms"] = (_subject_terms(ext, flat) + " (this file applies them for every user; "
+            if who:
+                meta["subject_terms"] = (who + " (this file applies them for every user; "
                                          "extended_<subject>.safetensors hold each user's own terms)")
             codes = ext.base.codes.weight.detach()
             export_extended(ext, out / "extended.safetensors", codes.mean(0), joint_names=flat.joints, dt=flat.dt,

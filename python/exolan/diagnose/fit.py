@@ -800,7 +800,8 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
     from ..export import export
 
     exo = to_exo_model(ext.base, z, joint_names)
-    on = lambda e, j: trial is None or e not in ext.gated or float(getattr(ext, f"gate_{e}")[trial, j]) > 0
+    gates = ext.gate_trials()
+    on = lambda e, j: trial is None or e not in gates or gates[e][j][trial] > 0
     eff = [(e, j) for e, js in ext.effects.items() for j in js if on(e, j)]
     twin = ExtendedModel(exo, ext.n, eff, dt=ext.dt, max_delay=ext.max_delay, coulomb_eps=ext.coulomb_eps,
                          coupled_damping=ext.coupled_damping).to(torch.float64)

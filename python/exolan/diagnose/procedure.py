@@ -344,6 +344,14 @@ def _param_by_group(model: ExtendedModel, flat: Flat, effect: str, j: int, held:
     return out
 
 
+def _cochran_q(theta: np.ndarray, se: np.ndarray) -> tuple[float, float]:
+    """Cochran's Q of estimates θ with standard errors se (inverse-variance weights) and its χ² p-value
+    (df = len − 1): do the groups want the same θ?"""
+    w = 1.0 / np.square(se)
+    Q = float(np.sum(w * (theta - np.sum(w * theta) / np.sum(w)) ** 2))
+    return Q, float(scipy_stats.chi2.sf(Q, len(theta) - 1))
+
+
 def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | None:
     """Whether (effect, joint j) looks like a property of some subjects only, from the training rows alone.
 
@@ -360,11 +368,11 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | Non
     so it only chooses the form; the gated term is fitted jointly and must pass every rule like any other.
     Returns None for a pooled term (every subject, or data with one subject).
     """
-    tr = flat.index("train")
-    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[tr].numpy()])
-    users = sorted(set(subj.tolist()))
+    users = sorted({m["subject"] for m in flat.trial_meta})
     if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
         return None     # one subject, or recordings named after their files (layout 2 without a subject column)
+    tr = flat.index("train")
+    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[tr].numpy()])
     rows = []                   # each subject's training rows, in time order (at most 20000 per subject)
     for u in users:
         idx = tr[torch.as_tensor(subj == u)]
@@ -385,9 +393,7 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict) -> dict | Non
         if not np.std(a) > 0:
             return None
         th[u], se[u], _ = _hac_step(a, r, len(rw))
-    t = np.array([th[u] for u in users]); w = 1.0 / np.square([se[u] for u in users])
-    Q = float(np.sum(w * (t - np.sum(w * t) / np.sum(w)) ** 2))
-    p_het = float(scipy_stats.chi2.sf(Q, len(users) - 1))
+    Q, p_het = _cochran_q(np.array([th[u] for u in users]), np.array([se[u] for u in users]))
     z_crit = float(scipy_stats.norm.ppf(1 - 0.025 / len(users)))
     z = {u: th[u] / se[u] for u in users}
     on = [u for u in users if (z[u] if c.positive else abs(z[u])) > z_crit]
@@ -664,9 +670,7 @@ def _spread(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=
         if "rest" in pg and len(have) >= 2:
             rest = pg["rest"]
             th = np.array([pg[g]["estimate"] for g in have])
-            w = 1.0 / np.square([pg[g]["se"] for g in have])
-            Q = float(np.sum(w * (th - np.sum(w * th) / np.sum(w)) ** 2))
-            p_het = float(scipy_stats.chi2.sf(Q, len(th) - 1))
+            Q, p_het = _cochran_q(th, np.array([pg[g]["se"] for g in have]))
             lo, hi = rest["estimate"] - 1.96 * rest["se"], rest["estimate"] + 1.96 * rest["se"]
             z_id = float(scipy_stats.norm.ppf(1 - 0.025 / max(family, 1)))
             z_rest = float(abs(rest["estimate"] - neutral) / rest["se"])
@@ -969,7 +973,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                         f"{sc['reason']}")
                 continue
             t1 = time.time()
-            form = subject_form(ref, flat, effect, j, sc) if len(subjects) > 1 else None
+            form = subject_form(ref, flat, effect, j, sc)
             if form is not None:
                 entry.update(subjects=form["subjects"], _subject_form=form)
                 _log(s, f"{effect:18s} {name:9s} a term of {', '.join(form['subjects'])} only: post-hoc θ by subject "
