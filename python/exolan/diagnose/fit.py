@@ -80,7 +80,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..data import SAVGOL_WINDOW
+from ..data import savgol_window
 from ..delan import Lagrangian, energy as _energy, solve_inertia
 from ..lim import LIM
 from ..extensions import ExtendedModel, exo_derivatives, lag_table, velocity_response
@@ -300,7 +300,7 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
         lengths.append(T)
         n = len(joints)
         tau_e = np.asarray(t.tau_e, dtype=np.float64) if getattr(t, "tau_e", None) is not None else np.zeros((T, n))
-        d1, d2 = exo_derivatives(tau_e, dt, response=v_resp, qdd_window=SAVGOL_WINDOW)
+        d1, d2 = exo_derivatives(tau_e, dt, response=v_resp, qdd_window=savgol_window(dt))
         seg, held = _segments(T, dt, seg_seconds, rng, every)
         f_v = np.asarray(t.f_v, dtype=np.float64) if getattr(t, "f_v", None) is not None else np.zeros(T)
         valid = np.asarray(t.valid, dtype=bool).copy() if getattr(t, "valid", None) is not None else np.ones(T, bool)

@@ -320,8 +320,9 @@ def markdown(rep: dict) -> str:
                      f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
             if f.get("ci_identification") is not None:
-                L.append(f"  - the interval above adds the spread between the joint fit and the single-term warm "
-                         f"start ({_fmt(f.get('estimate_warm_start'))}); the joint fit's own (HAC) interval, which "
+                how = f.get("warm_start", "the reference refitted with this term alone")
+                L.append(f"  - the interval above adds the spread between the joint fit and the warm start ({how}: "
+                         f"{_fmt(f.get('estimate_warm_start'))}); the joint fit's own (HAC) interval, which "
                          f"rule 4 checks against the no-effect value: {_fmt(f['ci_identification'], 3)}")
             dg = f.get("decision_gain")
             if dg:
