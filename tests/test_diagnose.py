@@ -216,7 +216,10 @@ def test_clean_world_finds_nothing(tmp_path):
     # the report says how far from 1 an exo torque gain would have to be to show in these data
     limits = rep["detection_limits"]["torque_gain"]
     assert set(limits) == {"hip", "knee"} and all(0 < v["k_below"] < 1 < v["k_above"] for v in limits.values())
-    assert "What these data cannot show" in md
+    # ... and how long an actuation delay would have to be
+    delays = rep["detection_limits"]["actuation_delay"]
+    assert set(delays) == {"hip", "knee"} and all(0 < v["d_limit"] < 0.1 for v in delays.values())
+    assert "What these data cannot show" in md and "a delay shows above d" in md
 
 
 @pytest.mark.heavy
@@ -335,5 +338,5 @@ def test_real_recordings_without_exoskeleton(tmp_path, real_data):
     exo = [e for e in rep["rejected"] if e["effect"] in ("actuation_delay", "torque_gain", "strap_compliance")]
     assert exo and all("not testable" in e["reason"] for e in exo)
     assert rep["baseline"]["torque_mse"] > 0 and rep["data"]["has_exo"] is False
-    assert rep["detection_limits"] == {"torque_gain": {}}
+    assert rep["detection_limits"] == {"torque_gain": {}, "actuation_delay": {}}
     assert (tmp_path / "diag" / "diagnosis.md").read_text().startswith("# Diagnosis")

@@ -675,6 +675,38 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
     assert abs(v["theta_limit"] / lim[1.0] - 1) < 0.05
 
 
+def test_the_delays_detection_limit_follows_the_rate_of_the_controllers_own_variation(monkeypatch):
+    """The shortest delay d that can show: the gain's arithmetic with the rate ȯ of the controller's own
+    variation in place of o (a delay changes the joint torque by τ_e(t) − τ_e(t−d) ≈ d τ̇_e). Checked against the
+    sampling-dominated closed form, and a faster own variation (same size) gives a shorter limit."""
+    from exolan.diagnose import procedure as P
+
+    sigma_eps = 0.02
+    eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
+    monkeypatch.setattr(P, "predict", lambda model, flat, idx: flat.tau[idx] - eps[idx] * flat.mass[idx, None])
+    s = P.Settings(n_boot=300)
+    flat = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
+    held = flat.index("held")
+    out = P.delay_detection_limit(flat, None, held, None, 0.0, s)
+    assert set(out) == {"hip"}
+    v = out["hip"]
+    own = (flat.tau_e[:, 0] - P.exo_copy(flat, 0).tau_e[:, 0]).numpy()
+    rate = np.concatenate([np.gradient(x, flat.dt) for x in np.split(own, np.cumsum(flat.lengths)[:-1])])
+    x = rate[held.numpy()] / 70.0
+    P_rate = np.mean(x ** 2)
+    expect = 2 * 1.96 * np.sqrt(P_rate) * sigma_eps / np.sqrt(len(held)) / P_rate
+    assert 0.75 * expect < v["d_limit"] < 1.33 * expect
+    # the gain's limit on the same data is in other units (θ = 1 − 1/k) and set by o, not ȯ
+    g = P.gain_detection_limit(flat, None, held, None, 0.0, s)["hip"]
+    assert g["rms_own"] == v["rms_own"] and g["theta_limit"] != v["d_limit"]
+    # the same own variation, smoothed less (faster): its rate is larger, the delay limit shorter
+    fast = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
+    for t0, T in zip(np.cumsum([0] + list(fast.lengths[:-1])), fast.lengths):
+        o = own[t0:t0 + T]
+        fast.tau_e[t0:t0 + T, 0] += torch.as_tensor(np.gradient(o) * 3.0, dtype=fast.tau_e.dtype)
+    assert P.delay_detection_limit(fast, None, held, None, 0.0, s)["hip"]["d_limit"] < v["d_limit"]
+
+
 def test_the_gains_screen_regresses_on_the_controllers_own_variation_that_the_base_leaves(monkeypatch):
     """A fitted base has absorbed (k − 1) times the exo torque's copy of the joint torque; its residual holds
     (k − 1) times the controller's own variation only. Regressed on the whole exo torque (90 % copy here) the

@@ -27,7 +27,8 @@ statistic of the data at hand):
    there. Required: the real candidate beats its nulls on held-out data (paired CI of the difference > 0). A
    delay whose CI reaches the largest delay searched is not identified. So a gain shows only through the
    controller's own variation, and one close to 1 cannot show at all: the report states, per joint, the gains
-   these data could detect (`gain_detection_limit`).
+   these data could detect (`gain_detection_limit`), and the shortest delay (`delay_detection_limit`: a delay
+   acts, to first order, through the rate of that variation).
 4. **Valid sign and identifiable.** Signs are enforced by the parametrisation (D PSD, Fc, Fs, d, 1/k ≥ 0);
    a parameter that the fit drives to its boundary is not identified. The parameter's 95% CI (Gauss-Newton
    sandwich with Newey-West/HAC covariance from statsmodels on the training residuals, lags = ACF block
@@ -209,23 +210,64 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
     the motion: a reference left 0.26 of a planted θ of 0.47 on o, world seed 6079): it tells the user that
     a gain closer to 1 than this is not a finding this data set can make.
     """
+    out = {}
+    for name, v in _own_variation_limits(flat, model, held, w_held, sigma_r, s, rate=False).items():
+        theta = v.pop("theta_limit")
+        out[name] = dict(theta_limit=theta, k_below=1.0 / (1.0 + theta),
+                         k_above=1.0 / (1.0 - theta) if theta < 1.0 else float("inf"), **v)
+    return out
+
+
+def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
+                          s: Settings) -> dict:
+    """Per joint with exo torque: the shortest actuation delay d these data can show (seconds).
+
+    Physics: the limb feels the recorded torque d later, so the joint's torque differs from the model's by
+    τ_e(t) − τ_e(t−d) ≈ d τ̇_e (first order in d). As for a gain (`gain_detection_limit`), the part of τ̇_e that
+    follows the joint torque's recent past is a function of the motion the base already predicts, so only the
+    rate of the controller's own variation ȯ identifies d: the same detection arithmetic with x = ȯ and θ = d.
+    First order and at the base's present misfit: a delay near the limit is also estimated short (the base
+    keeps part of it; measured in 2-user, 4-task worlds of 16 s trials: planted knee delays of 21-24 ms were
+    missed or found 15-25 % short, 27-50 ms within 8 %). It tells the user that a shorter delay is not a finding
+    this data set can make, and that one near the limit is estimated with that bias.
+    """
+    out = {}
+    for name, v in _own_variation_limits(flat, model, held, w_held, sigma_r, s, rate=True).items():
+        out[name] = dict(d_limit=v.pop("theta_limit"), **v)
+    return out
+
+
+def _own_variation_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
+                          s: Settings, rate: bool) -> dict:
+    """θ_limit per joint with exo torque for a term whose effect is δ = θ x, x the controller's own variation
+    o = τ_e − copy (`rate=False`: a gain, θ = 1 − 1/k) or its time derivative ȯ (`rate=True`: a delay, θ = d),
+    mass-normalised (the arithmetic of `gain_detection_limit`'s docstring)."""
     if not flat.has_exo or not len(held):
         return {}
     out = {}
     m = flat.mass[held].numpy().astype(np.float64)
     eps = ((flat.tau[held] - predict(model, flat, held)) / flat.mass[held, None]).numpy().astype(np.float64)
     for j, name in enumerate(flat.joints):
-        te = flat.tau_e[held, j].numpy().astype(np.float64)
+        te_all = flat.tau_e[:, j].numpy().astype(np.float64)
+        te = te_all[held.numpy()]
         if not np.abs(te).max() > 0:
             continue
-        own = te - exo_copy(flat, j).tau_e[held, j].numpy().astype(np.float64)
+        own_all = te_all - exo_copy(flat, j).tau_e[:, j].numpy().astype(np.float64)
+        own = own_all[held.numpy()]
+        if rate:
+            # ȯ per trial (central differences within each recording; held rows are whole segments)
+            d_all = np.concatenate([np.gradient(seg, flat.dt) if len(seg) > 1 else np.zeros(len(seg))
+                                    for seg in np.split(own_all, np.cumsum(flat.lengths)[:-1])])
+            x_raw = d_all[held.numpy()]
+        else:
+            x_raw = own
         w = w_held[:, j] if w_held is not None else np.ones(len(te))
-        x = own / m
+        x = x_raw / m
         P = float(np.mean(w * x ** 2))
-        # the misfit without a gain: ε less its own (weighted least-squares) share of o. Where a gain is there,
-        # the reference's ε holds part of θ o, which inflated SE(w o ε) by the effect itself (measured: a hip gain
-        # of 2.48, seed 1735, was found with a held-out gain of 35 %, own-variation null 4.0e-4 [1.3e-4, 7.0e-4],
-        # while the limit computed on ε said k above 2.54)
+        # the misfit without the effect: ε less its own (weighted least-squares) share of x. Where the effect is
+        # there, the reference's ε holds part of θ x, which inflated SE(w x ε) by the effect itself (measured: a
+        # hip gain of 2.48, seed 1735, was found with a held-out gain of 35 %, own-variation null 4.0e-4
+        # [1.3e-4, 7.0e-4], while the limit computed on ε said k above 2.54)
         r = eps[:, j] - (float(np.sum(w * x * eps[:, j]) / np.sum(w * x ** 2)) * x if P > 0 else 0.0)
         se = float(stats.bootstrap_mean(w * x * r, n_boot=s.n_boot, seed=s.seed).get("se", np.nan))
         if not (P > 0 and np.isfinite(se)):
@@ -233,9 +275,7 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
         b = 4.0 * 1.96 ** 2 * se ** 2
         a2 = (b + math.sqrt(b * b + 4.0 * P ** 2 * (1.96 * sigma_r) ** 2)) / (2.0 * P ** 2)
         var_te = float(np.var(te))
-        theta = math.sqrt(a2)
-        out[name] = dict(theta_limit=theta, k_below=1.0 / (1.0 + theta),
-                         k_above=1.0 / (1.0 - theta) if theta < 1.0 else float("inf"),
+        out[name] = dict(theta_limit=math.sqrt(a2),
                          copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
                          rms_exo=float(np.sqrt(np.mean(te ** 2))), rms_own=float(np.sqrt(np.mean(own ** 2))))
     return out
@@ -939,10 +979,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     baseline["noise_floor"] = dict(gain=floor["gain"], ci=floor["ci"], sigma=sigma_r, twin_differences=deltas,
                                    scale=scale)
     structure = R.residual_structure(ref, flat, held)
-    limits = {"torque_gain": gain_detection_limit(flat, ref, held, w_held, sigma_r, s)}
+    limits = {"torque_gain": gain_detection_limit(flat, ref, held, w_held, sigma_r, s),
+              "actuation_delay": delay_detection_limit(flat, ref, held, w_held, sigma_r, s)}
     for name, v in limits["torque_gain"].items():
         _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
                 f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
+    for name, v in limits["actuation_delay"].items():
+        _log(s, f"actuation delay on {name}: detectable above d ≈ {1e3 * v['d_limit']:.3g} ms")
 
     # 2. screen every candidate post hoc (cheap), then fit the promising ones jointly (warm start, same
     #    schedule and minibatches as the reference)

@@ -282,22 +282,29 @@ def _evidence_lines(f: dict) -> list[str]:
 
 
 def _limit_lines(limits: dict) -> list[str]:
-    """The 'What these data cannot show' section: the torque gain's detection limit per joint."""
+    """The 'What these data cannot show' section: the torque gain's and the actuation delay's detection limits
+    per joint."""
     gain = limits.get("torque_gain") or {}
-    if not gain:
+    delay = limits.get("actuation_delay") or {}
+    if not gain and not delay:
         return []
     L = ["## What these data cannot show",
-         "A torque gain error k shows only through the controller's own variation: the part of the exo torque "
-         "that copies the joint torque is absorbed by a base that predicts the joint torque from the motion "
-         "(rule 3's own-variation null). Gains between the limits below would not clear the sampling and refit "
-         "noise of these data (an estimate at the base's present misfit, optimistic where the base absorbs part "
-         "of the own variation too; `procedure.gain_detection_limit`).", "",
+         "A torque gain error k or an actuation delay d shows only through the controller's own variation: the "
+         "part of the exo torque that copies the joint torque is absorbed by a base that predicts the joint torque "
+         "from the motion (rule 3's own-variation null). A gain acts through that variation, a delay (to first "
+         "order) through its rate. Gains between the limits below, and delays shorter than the one below, would "
+         "not clear the sampling and refit noise of these data (an estimate at the base's present misfit, "
+         "optimistic where the base absorbs part of the own variation too; a delay near its limit is also "
+         "estimated short; `procedure.gain_detection_limit`, `procedure.delay_detection_limit`).", "",
          "| joint | exo torque rms [N m] | share that copies the joint torque | own variation rms [N m] | "
-         "a gain shows below k = | or above k = |",
-         "|---|---|---|---|---|---|"]
-    for j, v in gain.items():
+         "a gain shows below k = | or above k = | a delay shows above d = [ms] |",
+         "|---|---|---|---|---|---|---|"]
+    for j in list(dict.fromkeys(list(gain) + list(delay))):
+        v = gain.get(j) or delay.get(j)
+        dl = delay.get(j, {}).get("d_limit")
         L.append(f"| {j} | {_fmt(v['rms_exo'], 3)} | {100 * v['copy_share']:.0f} % | {_fmt(v['rms_own'], 3)} | "
-                 f"{_fmt(v['k_below'], 3)} | {_fmt(v['k_above'], 3)} |")
+                 f"{_fmt(gain.get(j, {}).get('k_below'), 3)} | {_fmt(gain.get(j, {}).get('k_above'), 3)} | "
+                 f"{_fmt(None if dl is None else 1e3 * dl, 3)} |")
     L.append("")
     return L
 
