@@ -339,6 +339,21 @@ def test_irregular_time_stamps_are_resampled_and_dropped_samples_masked(tmp_path
         load(tmp_path / "log.csv", cache=False)
 
 
+def test_a_time_column_in_milliseconds_is_read_when_declared_and_flagged_when_not(tmp_path):
+    t = np.arange(400) * 2.0                                   # ms: 500 Hz
+    q = 0.3 * np.sin(2 * np.pi * 1.0 * t / 1000.0)
+    lines = ["time,q_arm,tau_arm"] + [f"{a:.6g},{b:.9g},{2 * b:.9g}" for a, b in zip(t, q)]
+    (tmp_path / "ms.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "ms.json").write_text(json.dumps({"joints": [{"name": "arm"}], "units": {"time": "ms"}}))
+    assert load(tmp_path / "ms.csv", cache=False)[0].dt == pytest.approx(0.002)
+    (tmp_path / "ms.json").write_text(json.dumps({"joints": [{"name": "arm"}]}))
+    with pytest.warns(DataWarning, match="milliseconds"):
+        load(tmp_path / "ms.csv", cache=False)
+    (tmp_path / "ms.json").write_text(json.dumps({"joints": [{"name": "arm"}], "units": {"time": "min"}}))
+    with pytest.raises(DataError, match="units.time"):
+        load(tmp_path / "ms.csv", cache=False)
+
+
 def test_missing_path_and_unknown_layout(tmp_path):
     with pytest.raises(DataError, match="no such"):
         load(tmp_path / "nope")

@@ -189,6 +189,7 @@ def _col(cols: dict, name: str, path: Path) -> np.ndarray:
 
 
 GAP_FACTOR = 1.5   # a step in time longer than this many sample times is a gap (missing samples)
+SLOW_SAMPLE_TIME = 0.05   # s: sampling at 20 Hz or slower cannot resolve a limb's or a drive's dynamics
 
 
 def _check_time(t: np.ndarray, path: Path) -> float:
@@ -204,7 +205,14 @@ def _check_time(t: np.ndarray, path: Path) -> float:
         i = back[0]
         raise DataError(f"{path}: column 'time' is not increasing: row {i + 2} (t={t[i + 1]:g} s) "
                         f"{'repeats' if d[i] == 0 else 'comes before'} the previous row's {t[i]:g} s")
-    return float(np.median(d))
+    dt = float(np.median(d))
+    if dt >= SLOW_SAMPLE_TIME:
+        import warnings
+
+        warnings.warn(f"{path}: column 'time' steps by {dt:g} s ({1 / dt:.3g} Hz), too slow for joint dynamics: "
+                      f"if it is in milliseconds, give seconds (layout 2: or \"units\": {{\"time\": \"ms\"}})",
+                      DataWarning, stacklevel=3)
+    return dt
 
 
 def _uniform(t: np.ndarray, cols: list[dict], dt: float, path: Path) -> tuple[np.ndarray, list[dict]]:
@@ -474,11 +482,17 @@ def read_layout2(csv_path, data: bytes | None = None, meta_bytes: bytes | None =
         names.append(str(j["name"]))
         types.append(ty)
     cols = _read_csv(csv_path, data)
+    units = meta.get("units", {}) or {}
     t = _col(cols, "time", csv_path)
+    t_unit = str(units.get("time", "s")).lower()
+    if t_unit in ("ms", "millisecond", "milliseconds"):
+        t = t / 1000.0
+    elif t_unit not in ("s", "sec", "second", "seconds"):
+        raise DataError(f"{jp}: units.time must be 's' or 'ms', not {units.get('time')!r}")
+    cols["time"] = t
     dt = _check_time(t, csv_path)
     t, (cols,) = _uniform(t, [cols], dt, csv_path)
     q = np.stack([_col(cols, f"q_{n}", csv_path) for n in names], 1)
-    units = meta.get("units", {}) or {}
     if str(units.get("q", "")).lower() in ("deg", "degree", "degrees"):
         rev = np.array([ty == "revolute" for ty in types])
         q[:, rev] = np.radians(q[:, rev])
