@@ -200,6 +200,9 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     if eff == "torque_gain":    # what the report calls detectable agrees with what was detected
         lim = rep["detection_limits"]["torque_gain"][joint]
         assert value > lim["k_above"] or value < lim["k_below"], msg
+    if eff == "actuation_delay":    # a delay near the detection limit carries the warning that it reads short
+        lim = rep["detection_limits"]["actuation_delay"][joint]["d_limit"]
+        assert ("detection limit" in (f.get("note") or "")) == (f["estimate"] < 2 * lim), msg
     return rep
 
 

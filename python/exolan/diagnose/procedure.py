@@ -1388,6 +1388,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             if sig and len(sig) < len(e["subject_gains"]):
                 e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
                     "held-out gain above 0 only for " + ", ".join(sig) + " (parameter fitted on all subjects)"
+    # a delay found near the data's detection limit is estimated short (the base keeps part of it): say so
+    for e in results:
+        lim = (limits.get("actuation_delay") or {}).get(e["joint"], {}).get("d_limit")
+        if e["effect"] == "actuation_delay" and e["status"] == "accepted" and lim and e["estimate"] < 2.0 * lim:
+            e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
+                (f"within twice these data's detection limit for a delay ({1e3 * lim:.3g} ms): likely estimated short "
+                 f"(measured: 24 ms planted, limit 17.6 ms, found 18.4 ms)")
     findings = [_public(e) for e in results if e["status"] == "accepted"]
     rejected = [_public(e) for e in results if e["status"] != "accepted"]
     report = {"baseline": _strip(baseline), "findings": findings, "rejected": rejected,
