@@ -88,6 +88,9 @@ def test_linear_drive_viscous_friction_layout2(tmp_path, viscous):
         # decided on the misfit-weighted held-out error, reported with the user's unweighted one beside it
         assert f["decision_gain"]["scale"] == "misfit-weighted" and f["decision_gain"]["ci"][0] > 0
     assert rep["baseline"]["noise_floor"]["scale"] == "misfit-weighted"
+    # a bench's errors are in its own units (a prismatic axis: N), not per body mass
+    md = (tmp_path / "diagnosis.md").read_text()
+    assert rep["data"]["torque_unit"] == "N" and "N m/kg" not in md and "held-out torque MSE [(N)²]" in md
     # the report is complete and readable
     j = json.loads((tmp_path / "diagnosis.json").read_text())
     assert set(j) >= {"baseline", "findings", "rejected", "extended"}
@@ -223,6 +226,7 @@ def test_clean_world_finds_nothing(tmp_path):
     delays = rep["detection_limits"]["actuation_delay"]
     assert set(delays) == {"hip", "knee"} and all(0 < v["d_limit"] < 0.1 for v in delays.values())
     assert "What these data cannot show" in md and "a delay shows above d" in md
+    assert rep["data"]["torque_unit"] == "N m/kg" and "held-out torque MSE / mass² [(N m/kg)²]" in md
 
 
 @pytest.mark.heavy

@@ -39,6 +39,7 @@ import os
 import pickle
 import re
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -207,8 +208,6 @@ def _check_time(t: np.ndarray, path: Path) -> float:
                         f"{'repeats' if d[i] == 0 else 'comes before'} the previous row's {t[i]:g} s")
     dt = float(np.median(d))
     if dt >= SLOW_SAMPLE_TIME:
-        import warnings
-
         warnings.warn(f"{path}: column 'time' steps by {dt:g} s ({1 / dt:.3g} Hz), too slow for joint dynamics: "
                       f"if it is in milliseconds, give seconds (layout 2: or \"units\": {{\"time\": \"ms\"}})",
                       DataWarning, stacklevel=3)
@@ -222,8 +221,6 @@ def _uniform(t: np.ndarray, cols: list[dict], dt: float, path: Path) -> tuple[np
     derivatives and every fit see separate stretches. Loggers on a PC clock time-stamp with jitter and drop
     samples; refusing such a file would leave a bench recording unusable. Warns (DataWarning) with what
     was done."""
-    import warnings
-
     d = np.diff(t)
     if not (np.abs(d - dt) > 1e-3 * dt + 1e-9).any():
         return t, cols

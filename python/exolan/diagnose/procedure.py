@@ -192,6 +192,15 @@ def _future_null(base, flat: Flat, entry: dict, j: int, lag: int, s: Settings):
     return null, adv, dict(future_lag_s=float(lag * flat.dt)), f"exo torque {lag} samples in the future"
 
 
+def torque_unit(flat: Flat) -> str:
+    """The unit of the errors every gain is measured in: torque per body mass where the data carry a mass
+    (layout 1, N m/kg), else the joints' own (layout 2, mass 1: N m revolute, N prismatic)."""
+    if not bool((flat.mass == 1.0).all()):
+        return "N m/kg"
+    kinds = set(flat.joint_types)
+    return "N m" if kinds == {"revolute"} else "N" if kinds == {"prismatic"} else "N m or N"
+
+
 def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
                          s: Settings) -> dict:
     """Per joint with exo torque: how far from 1 a torque gain k must be before these data can show it.
@@ -960,7 +969,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         deltas.append(float((e_ref - e_twin).mean()))
         twin_d.append(e_ref - e_twin)
     sigma_r = float(np.sqrt(np.mean(np.square(deltas))))
-    _log(s, f"reference held-out MSE {e_ref_user.mean():.4g} (N m/kg)²; refit noise σ_r {sigma_r:.3g} "
+    _log(s, f"reference held-out MSE {e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r {sigma_r:.3g} "
             f"({scale}, {len(deltas)} twin refits)")
 
     groups, group_kind = sample_groups(flat, held)
@@ -1377,11 +1386,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     # no difference between the users (else it would be a subject-specific term), and a user's interval that
     # reaches 0 is a lack of power there, not evidence that the effect is absent
     for e in results:
-        if e.get("_subject_form"):      # a subject-specific term: fitted on those subjects' trials only
+        if e.get("_subject_form"):      # a subject-specific term: fitted on those subjects' trials only (the
+            # report's verdict and evidence line say so, from `subject_form`)
             e["subject_form"] = {k: v for k, v in e["_subject_form"].items() if k != "trials"}
-            if e["status"] == "accepted":
-                e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
-                    "a term of " + ", ".join(e["subjects"]) + " only (fitted on their trials; `subject_form`)"
             continue
         if e["status"] == "accepted" and e.get("subject_gains"):
             sig = sorted(k for k, v in e["subject_gains"].items() if v["ci"][0] > 0)
@@ -1403,6 +1410,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
               "residuals": structure, "detection_limits": limits, "settings": {k: (list(v) if isinstance(v, tuple) else v)
                                                      for k, v in s.__dict__.items()},
               "data": dict(trials=len(trials), samples=int(flat.q.shape[0]), heldout=int(len(held)),
+                           torque_unit=torque_unit(flat),
                            joints=list(flat.joints), joint_types=list(flat.joint_types), has_exo=flat.has_exo,
                            has_insole=flat.has_insole, split="held-out time segments (1 in 4, ~2 s) within every trial")}
     return dict(report=report, flat=flat, base=base, ref=ref, ext_model=ext_model, ro_base=ro_base, ro_ext=ro_ext,

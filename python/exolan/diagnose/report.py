@@ -127,7 +127,7 @@ def plot_rollouts(out: Path, flat: Flat, ro_base: dict, ro_ext: dict | None) -> 
     return fname
 
 
-def plot_gains(out: Path, results: list) -> str | None:
+def plot_gains(out: Path, results: list, unit: str = "N m/kg") -> str | None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -144,7 +144,8 @@ def plot_gains(out: Path, results: list) -> str | None:
     ax.set_yticklabels([f"{e['effect']}:{e['joint']} ({e['status']})" for e in rows], fontsize=7)
     ax.axvline(0, color="k", lw=0.5)
     ax.set_xscale("symlog", linthresh=1e-3)
-    ax.set_xlabel("held-out gain in mass-normalised torque MSE [(N m/kg)²]\nwith 95% block-bootstrap CI")
+    what = "mass-normalised torque MSE" if unit == "N m/kg" else "torque MSE"
+    ax.set_xlabel(f"held-out gain in {what} [({unit})²]\nwith 95% block-bootstrap CI")
     fig.tight_layout()
     fname = "candidate_gains.png"
     fig.savefig(out / fname, dpi=90, bbox_inches="tight")
@@ -213,7 +214,7 @@ def write(out: Path, res: dict) -> dict:
         plots["residual_vs_velocity"] = plot_residual_vs_velocity(out, flat, res["ref"], res.get("ext_model"))
         plots["ccf"] = plot_ccf(out, rep["residuals"], flat)
         plots["rollouts"] = plot_rollouts(out, flat, res["ro_base"], res.get("ro_ext"))
-        g = plot_gains(out, res["results"])
+        g = plot_gains(out, res["results"], _unit(rep))
         if g:
             plots["gains"] = g
     except Exception as exc:   # a plotting failure must not lose the diagnosis itself
@@ -225,13 +226,21 @@ def write(out: Path, res: dict) -> dict:
     return rep
 
 
-def _metric_rows(b: dict, e: dict | None) -> list[str]:
+def _unit(rep: dict) -> str:
+    """The unit of the report's torque errors (`procedure.torque_unit`; reports written before it: N m/kg)."""
+    return (rep.get("data") or {}).get("torque_unit", "N m/kg")
+
+
+def _metric_rows(b: dict, e: dict | None, unit: str = "N m/kg") -> list[str]:
     rows = ["| metric | base model | extended model |", "|---|---|---|"]
     def get(m, k):
         return m.get(k) if m else None
-    rows.append(f"| held-out torque MSE [N² m²] | {_fmt(get(b, 'torque_mse'))} {_fmt(get(b, 'torque_mse_ci'), 3)} | "
+    raw = "N m" if unit == "N m/kg" else unit
+    rows.append(f"| held-out torque MSE [({raw})²] | {_fmt(get(b, 'torque_mse'))} {_fmt(get(b, 'torque_mse_ci'), 3)} | "
                 f"{_fmt(get(e, 'torque_mse'))} {_fmt(get(e, 'torque_mse_ci'), 3)} |")
-    rows.append(f"| held-out torque MSE / mass² [(N m/kg)²] | {_fmt(get(b, 'torque_mse_norm'))} | {_fmt(get(e, 'torque_mse_norm'))} |")
+    if unit == "N m/kg":
+        rows.append(f"| held-out torque MSE / mass² [(N m/kg)²] | {_fmt(get(b, 'torque_mse_norm'))} | "
+                    f"{_fmt(get(e, 'torque_mse_norm'))} |")
     for j, v in (b.get("per_joint") or {}).items():
         ev = (e or {}).get("per_joint", {}).get(j, {})
         rows.append(f"| {j}: rms residual / R² | {_fmt(v['rms'])} / {_fmt(v['r2'], 3)} | {_fmt(ev.get('rms'))} / {_fmt(ev.get('r2'), 3)} |")
@@ -311,6 +320,7 @@ def _limit_lines(limits: dict) -> list[str]:
 
 def markdown(rep: dict) -> str:
     d = rep.get("data", {})
+    U = _unit(rep)
     findings = rep["findings"]
     L = ["# Diagnosis: what the model's physics gets wrong", ""]
     L.append(f"Data: {d.get('trials')} trials, {d.get('samples')} samples, joints {d.get('joints')} "
@@ -324,7 +334,7 @@ def markdown(rep: dict) -> str:
             unit = "" if f["unit"] == "1" else f" {f['unit']}"      # a gain is a pure number
             who = f" of **{', '.join(f['subjects'])}** only" if (f.get("subject_form") or {}).get("subjects") else ""
             L.append(f"- **{f['effect']}** on **{f['joint']}**{who}: {_fmt(f['estimate'])}{unit} "
-                     f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} (N m/kg)² "
+                     f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} ({U})² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
             if f.get("ci_identification") is not None:
                 how = f.get("warm_start", "the reference refitted with this term alone")
@@ -343,18 +353,18 @@ def markdown(rep: dict) -> str:
     L.append("")
     L.append("## Before and after (held-out)")
     ext = rep.get("extended", {})
-    L += _metric_rows(rep["baseline"], ext if findings else None)
+    L += _metric_rows(rep["baseline"], ext if findings else None, U)
     if findings and ext.get("heldout_gain") is not None:
         L.append("")
         L.append(f"Extended model ({', '.join(ext.get('terms', []))}) held-out gain: {_fmt(ext['heldout_gain'], 3)} "
-                 f"(N m/kg)², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}"
+                 f"({U})², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}"
                  + (f" ({ext['model']})." if ext.get("model") else "."))
         for k, v in (ext.get("rollout_gain") or {}).items():
             L.append(f"- rollout {k} reduction: {_fmt(v['gain'], 3)} CI {_fmt(v['ci'], 3)}")
     nf = rep["baseline"].get("noise_floor")
     if nf:
         L.append(f"\nRefit noise σ_r (RMS held-out difference of {len(nf.get('twin_differences', [])) or 1} twin refits "
-                 f"from the reference, {nf.get('scale', 'unweighted')}): {_fmt(nf.get('sigma'), 3)} (N m/kg)²; "
+                 f"from the reference, {nf.get('scale', 'unweighted')}): {_fmt(nf.get('sigma'), 3)} ({U})²; "
                  f"first twin {_fmt(nf['gain'], 3)} CI {_fmt(nf['ci'], 3)}.")
     plots = rep.get("plots", {})
     L.append("")
