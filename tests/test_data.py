@@ -354,6 +354,22 @@ def test_a_time_column_in_milliseconds_is_read_when_declared_and_flagged_when_no
         load(tmp_path / "ms.csv", cache=False)
 
 
+def test_the_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
+    """`exolan diagnose` on recordings it cannot use: exit 2 and one line naming the problem."""
+    from exolan.cli import main
+
+    assert main(["diagnose", str(tmp_path / "nothing"), "--out", str(tmp_path / "d")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    for name, fs in (("a", 1000), ("b", 500)):        # two recordings of one bench at different rates
+        t = np.arange(300) / fs
+        lines = ["time,q_x,tau_x"] + [f"{a:.6g},{np.sin(a):.6g},{np.cos(a):.6g}" for a in t]
+        (tmp_path / f"{name}.csv").write_text("\n".join(lines) + "\n")
+        (tmp_path / f"{name}.json").write_text(json.dumps({"joints": [{"name": "x"}]}))
+    assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d")]) == 2
+    err = capsys.readouterr().err
+    assert "sample time differ" in err and "Traceback" not in err
+
+
 def test_missing_path_and_unknown_layout(tmp_path):
     with pytest.raises(DataError, match="no such"):
         load(tmp_path / "nope")

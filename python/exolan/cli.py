@@ -155,7 +155,14 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"exolan {args.command}: not implemented yet", file=sys.stderr)
         return 3
-    rc = handler(args)
+    from .data import DataError
+
+    try:
+        rc = handler(args)
+    except DataError as exc:
+        # bad input is the user's to fix: the message names the file, column or row; no traceback
+        print(f"exolan {args.command}: {exc}", file=sys.stderr)
+        return 2
     return int(rc or 0)
 
 

@@ -80,7 +80,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..data import savgol_window
+from ..data import DataError, savgol_window
 from ..delan import Lagrangian, energy as _energy, solve_inertia
 from ..lim import LIM
 from ..extensions import ExtendedModel, exo_derivatives, lag_table, velocity_response
@@ -281,12 +281,13 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
             seed: int = 0) -> Flat:
     """Stack trials (DESIGN.md section 1 `Trial`s, duck-typed) into a `Flat`."""
     if not trials:
-        raise ValueError("diagnosis needs at least one trial")
+        raise DataError("diagnosis needs at least one trial")
     t0 = trials[0]
     joints, jtypes, dt = tuple(t0.joints), tuple(t0.joint_types), float(t0.dt)
     for t in trials:
         if tuple(t.joints) != joints or abs(float(t.dt) - dt) > 1e-9:
-            raise ValueError(f"trial {t.subject}/{t.name}: joints or sample time differ from the first trial")
+            raise DataError(f"trial {t.subject}/{t.name}: joints or sample time differ from the first trial "
+                            f"({t0.subject}/{t0.name}: {joints}, {dt:g} s; this one: {tuple(t.joints)}, {float(t.dt):g} s)")
     rng = np.random.default_rng(seed)
     K = int(math.ceil(max_delay / dt)) + 1
     cols = {k: [] for k in ("q", "qd", "qdd", "tau", "tau_e", "tau_e_d", "tau_e_dd", "f_v", "x_cop", "mass", "valid",
