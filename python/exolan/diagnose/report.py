@@ -323,7 +323,7 @@ def markdown(rep: dict) -> str:
     U = _unit(rep)
     findings = rep["findings"]
     L = ["# Diagnosis: what the model's physics gets wrong", ""]
-    L.append(f"Data: {d.get('trials')} trials, {d.get('samples')} samples, joints {d.get('joints')} "
+    L.append(f"Data: {d.get('trials')} trial{'' if d.get('trials') == 1 else 's'}, {d.get('samples')} samples, joints {d.get('joints')} "
              f"({d.get('joint_types')}); exo torque recorded: {d.get('has_exo')}; insole: {d.get('has_insole')}. "
              f"Decisions on {d.get('heldout')} held-out samples ({d.get('split')}).")
     L.append(f"Base model: {rep['baseline'].get('source', '')}.")
