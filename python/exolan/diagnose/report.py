@@ -199,8 +199,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings).
 Where the data hold several subjects, a candidate whose post-hoc correction on the training rows is wanted by
 some subjects only (their θ clears a Bonferroni z over the subjects, the others' does not, Cochran's Q p < 0.05)
-is fitted as a term of those subjects only (switched off on the other subjects' trials) and judged by the same
-rules."""
+is fitted as a term of those subjects only (switched off on the other subjects' trials) where that term beats one
+shared term on held-out data beyond the refit noise (a shared effect that the base absorbed more in some subjects
+looks the same post hoc), and judged by the same rules."""
 
 
 def write(out: Path, res: dict) -> dict:
@@ -279,9 +280,18 @@ def _evidence_lines(f: dict) -> list[str]:
     if sf.get("subjects"):
         th = ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in sf["theta_by_subject"].items())
         het = sf.get("heterogeneity") or {}
+        adv = sf.get("advantage_over_shared") or {}
         out.append(f"  - a term of {', '.join(sf['subjects'])} only (fitted on their trials): post-hoc θ by subject on "
                    f"the training rows (HAC SE) {th}; Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, "
-                   f"p {_fmt(het.get('p'), 2)}")
+                   f"p {_fmt(het.get('p'), 2)}; it beats one shared term by {_fmt(adv.get('gain'), 3)} "
+                   f"CI {_fmt(adv.get('ci'), 3)}")
+    nt = f.get("subject_form_not_taken") or {}
+    if nt.get("subjects"):
+        th = ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in nt["theta_by_subject"].items())
+        adv = nt.get("advantage_over_shared") or {}
+        out.append(f"  - one term for every subject: the post-hoc θ by subject ({th}) asked for a term of "
+                   f"{', '.join(nt['subjects'])} only, which did not beat the shared one ({_fmt(adv.get('gain'), 3)} "
+                   f"CI {_fmt(adv.get('ci'), 3)}): the base absorbs a shared effect more in some subjects than others")
     sg = f.get("subject_gains") or {}
     if sg:
         out.append("  - gain by subject: " + ", ".join(f"{k} {_fmt(v['gain'], 3)} {_fmt(v['ci'], 3)}" for k, v in sg.items()))
