@@ -219,17 +219,12 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
     the motion: a reference left 0.26 of a planted θ of 0.47 on o, world seed 6079): it tells the user that
     a gain closer to 1 than this is not a finding this data set can make.
     """
-    out = {}
-    for name, v in _own_variation_limits(flat, model, held, w_held, sigma_r, s, rate=False).items():
-        theta = v.pop("theta_limit")
-        out[name] = dict(theta_limit=theta, k_below=1.0 / (1.0 + theta),
-                         k_above=1.0 / (1.0 - theta) if theta < 1.0 else float("inf"), **v)
-    return out
+    return detection_limits(flat, model, held, w_held, sigma_r, s)["torque_gain"]
 
 
 def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
                           s: Settings) -> dict:
-    """Per joint with exo torque: the shortest actuation delay d these data can show (seconds).
+    """Per joint with exo torque: the shortest actuation delay d these data can show (seconds, `d_limit`).
 
     Physics: the limb feels the recorded torque d later, so the joint's torque differs from the model's by
     τ_e(t) − τ_e(t−d) ≈ d τ̇_e (first order in d). As for a gain (`gain_detection_limit`), the part of τ̇_e that
@@ -240,54 +235,57 @@ def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndar
     missed or found 15-25 % short, 27-50 ms within 8 %). It tells the user that a shorter delay is not a finding
     this data set can make, and that one near the limit is estimated with that bias.
     """
-    out = {}
-    for name, v in _own_variation_limits(flat, model, held, w_held, sigma_r, s, rate=True).items():
-        out[name] = dict(d_limit=v.pop("theta_limit"), **v)
-    return out
+    return detection_limits(flat, model, held, w_held, sigma_r, s)["actuation_delay"]
 
 
-def _own_variation_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
-                          s: Settings, rate: bool) -> dict:
-    """θ_limit per joint with exo torque for a term whose effect is δ = θ x, x the controller's own variation
-    o = τ_e − copy (`rate=False`: a gain, θ = 1 − 1/k) or its time derivative ȯ (`rate=True`: a delay, θ = d),
-    mass-normalised (the arithmetic of `gain_detection_limit`'s docstring)."""
+def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
+                     s: Settings) -> dict:
+    """`{"torque_gain": gain_detection_limit, "actuation_delay": delay_detection_limit}` in one pass: the model's
+    held-out misfit and each joint's own variation o = τ_e − copy are computed once. Both limits solve the
+    arithmetic of `gain_detection_limit`'s docstring for an effect δ = θ x (mass-normalised): x = o for a gain
+    (θ = 1 − 1/k), x = ȯ for a delay (θ = d)."""
+    gain, delay = {}, {}
     if not flat.has_exo or not len(held):
-        return {}
-    out = {}
+        return {"torque_gain": gain, "actuation_delay": delay}
+    h = held.numpy()
     m = flat.mass[held].numpy().astype(np.float64)
     eps = ((flat.tau[held] - predict(model, flat, held)) / flat.mass[held, None]).numpy().astype(np.float64)
-    for j, name in enumerate(flat.joints):
-        te_all = flat.tau_e[:, j].numpy().astype(np.float64)
-        te = te_all[held.numpy()]
-        if not np.abs(te).max() > 0:
-            continue
-        own_all = te_all - exo_copy(flat, j).tau_e[:, j].numpy().astype(np.float64)
-        own = own_all[held.numpy()]
-        if rate:
-            # ȯ per trial (central differences within each recording; held rows are whole segments)
-            d_all = np.concatenate([np.gradient(seg, flat.dt) if len(seg) > 1 else np.zeros(len(seg))
-                                    for seg in np.split(own_all, np.cumsum(flat.lengths)[:-1])])
-            x_raw = d_all[held.numpy()]
-        else:
-            x_raw = own
-        w = w_held[:, j] if w_held is not None else np.ones(len(te))
-        x = x_raw / m
+
+    def theta_limit(x: np.ndarray, e: np.ndarray, w: np.ndarray) -> float | None:
         P = float(np.mean(w * x ** 2))
         # the misfit without the effect: ε less its own (weighted least-squares) share of x. Where the effect is
         # there, the reference's ε holds part of θ x, which inflated SE(w x ε) by the effect itself (measured: a
         # hip gain of 2.48, seed 1735, was found with a held-out gain of 35 %, own-variation null 4.0e-4
         # [1.3e-4, 7.0e-4], while the limit computed on ε said k above 2.54)
-        r = eps[:, j] - (float(np.sum(w * x * eps[:, j]) / np.sum(w * x ** 2)) * x if P > 0 else 0.0)
+        r = e - (float(np.sum(w * x * e) / np.sum(w * x ** 2)) * x if P > 0 else 0.0)
         se = float(stats.bootstrap_mean(w * x * r, n_boot=s.n_boot, seed=s.seed).get("se", np.nan))
         if not (P > 0 and np.isfinite(se)):
-            continue
+            return None
         b = 4.0 * 1.96 ** 2 * se ** 2
-        a2 = (b + math.sqrt(b * b + 4.0 * P ** 2 * (1.96 * sigma_r) ** 2)) / (2.0 * P ** 2)
+        return math.sqrt((b + math.sqrt(b * b + 4.0 * P ** 2 * (1.96 * sigma_r) ** 2)) / (2.0 * P ** 2))
+
+    for j, name in enumerate(flat.joints):
+        te_all = flat.tau_e[:, j].numpy().astype(np.float64)
+        te = te_all[h]
+        if not np.abs(te).max() > 0:
+            continue
+        own_all = te_all - exo_copy(flat, j).tau_e[:, j].numpy().astype(np.float64)
+        own = own_all[h]
+        # ȯ per trial (central differences within each recording; held rows are whole segments)
+        rate = np.concatenate([np.gradient(seg, flat.dt) if len(seg) > 1 else np.zeros(len(seg))
+                               for seg in np.split(own_all, np.cumsum(flat.lengths)[:-1])])[h]
+        w = w_held[:, j] if w_held is not None else np.ones(len(te))
         var_te = float(np.var(te))
-        out[name] = dict(theta_limit=math.sqrt(a2),
-                         copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
-                         rms_exo=float(np.sqrt(np.mean(te ** 2))), rms_own=float(np.sqrt(np.mean(own ** 2))))
-    return out
+        sizes = dict(copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
+                     rms_exo=float(np.sqrt(np.mean(te ** 2))), rms_own=float(np.sqrt(np.mean(own ** 2))))
+        theta = theta_limit(own / m, eps[:, j], w)
+        if theta is not None:
+            gain[name] = dict(theta_limit=theta, k_below=1.0 / (1.0 + theta),
+                              k_above=1.0 / (1.0 - theta) if theta < 1.0 else float("inf"), **sizes)
+        d = theta_limit(rate / m, eps[:, j], w)
+        if d is not None:
+            delay[name] = dict(d_limit=d, **sizes)
+    return {"torque_gain": gain, "actuation_delay": delay}
 
 
 def _future_peak(x: torch.Tensor, tau_e: torch.Tensor, min_lag: int, max_lag: int) -> int:
@@ -990,8 +988,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     baseline["noise_floor"] = dict(gain=floor["gain"], ci=floor["ci"], sigma=sigma_r, twin_differences=deltas,
                                    scale=scale)
     structure = R.residual_structure(ref, flat, held)
-    limits = {"torque_gain": gain_detection_limit(flat, ref, held, w_held, sigma_r, s),
-              "actuation_delay": delay_detection_limit(flat, ref, held, w_held, sigma_r, s)}
+    limits = detection_limits(flat, ref, held, w_held, sigma_r, s)
     for name, v in limits["torque_gain"].items():
         _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
                 f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
@@ -1412,15 +1409,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         if e["status"] == "accepted" and e.get("subject_gains"):
             sig = sorted(k for k, v in e["subject_gains"].items() if v["ci"][0] > 0)
             if sig and len(sig) < len(e["subject_gains"]):
-                e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
-                    "held-out gain above 0 only for " + ", ".join(sig) + " (parameter fitted on all subjects)"
+                _add_note(e, "held-out gain above 0 only for " + ", ".join(sig) + " (parameter fitted on all subjects)")
     # a delay found near the data's detection limit is estimated short (the base keeps part of it): say so
     for e in results:
-        lim = (limits.get("actuation_delay") or {}).get(e["joint"], {}).get("d_limit")
+        lim = limits["actuation_delay"].get(e["joint"], {}).get("d_limit")
         if e["effect"] == "actuation_delay" and e["status"] == "accepted" and lim and e["estimate"] < 2.0 * lim:
-            e["note"] = (e.get("note", "") + "; " if e.get("note") else "") + \
-                (f"within twice these data's detection limit for a delay ({1e3 * lim:.3g} ms): likely estimated short "
-                 f"(measured: 24 ms planted, limit 17.6 ms, found 18.4 ms)")
+            _add_note(e, f"within twice these data's detection limit for a delay ({1e3 * lim:.3g} ms): likely "
+                         f"estimated short (measured: 24 ms planted, limit 17.6 ms, found 18.4 ms)")
     findings = [_public(e) for e in results if e["status"] == "accepted"]
     rejected = [_public(e) for e in results if e["status"] != "accepted"]
     report = {"baseline": _strip(baseline), "findings": findings, "rejected": rejected,
@@ -1434,6 +1429,11 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                            has_insole=flat.has_insole, split="held-out time segments (1 in 4, ~2 s) within every trial")}
     return dict(report=report, flat=flat, base=base, ref=ref, ext_model=ext_model, ro_base=ro_base, ro_ext=ro_ext,
                 results=results)
+
+
+def _add_note(e: dict, text: str) -> None:
+    """Append `text` to a candidate's note ("; " between notes)."""
+    e["note"] = f"{e['note']}; {text}" if e.get("note") else text
 
 
 _PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "estimate", "ci", "unit",

@@ -276,9 +276,12 @@ def _evidence_lines(f: dict) -> list[str]:
                 f"reference by" if n.get("own_variation_only") else
                 f"beats the same term on the exo torque {_fmt(1e3 * n['future_lag_s'], 3)} ms in the future by")
         out.append(f"  - null: {what} {_fmt(n['gain'], 3)} CI {_fmt(n['ci'], 3)}{'' if n.get('passes') else ' (not passed)'}")
+    def by_subject(form: dict) -> str:
+        return ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in form["theta_by_subject"].items())
+
     sf = f.get("subject_form") or {}
     if sf.get("subjects"):
-        th = ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in sf["theta_by_subject"].items())
+        th = by_subject(sf)
         het = sf.get("heterogeneity") or {}
         adv = sf.get("advantage_over_shared") or {}
         out.append(f"  - a term of {', '.join(sf['subjects'])} only (fitted on their trials): post-hoc θ by subject on "
@@ -287,7 +290,7 @@ def _evidence_lines(f: dict) -> list[str]:
                    f"CI {_fmt(adv.get('ci'), 3)}")
     nt = f.get("subject_form_not_taken") or {}
     if nt.get("subjects"):
-        th = ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in nt["theta_by_subject"].items())
+        th = by_subject(nt)
         adv = nt.get("advantage_over_shared") or {}
         out.append(f"  - one term for every subject: the post-hoc θ by subject ({th}) asked for a term of "
                    f"{', '.join(nt['subjects'])} only, which did not beat the shared one ({_fmt(adv.get('gain'), 3)} "
