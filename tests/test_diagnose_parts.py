@@ -451,6 +451,37 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
         assert rep["extended"]["parameters"][f"{f['effect']}:x"] == pytest.approx(f["estimate"], rel=1e-9)
 
 
+def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(tmp_path, monkeypatch):
+    """A term fitted from scratch with another recipe than the reference's (the delay's: no acceleration term,
+    then a stabilising refit) is judged against a term-free base fitted with that recipe, not the reference: in
+    forward selection (the model without the further term gets the recipe of the one with it) and in the extended
+    model's confirmation, which the report names. Mechanics only: the frictions are made to take that recipe."""
+    import exolan.diagnose.procedure as P
+
+    monkeypatch.setattr(P, "INERTIA_CONFUSED", ("viscous_damping",))
+    calls = []
+    real = P._fresh_fit
+
+    def recorded(flat, s, effects, init, start, confused=None):
+        calls.append((tuple(e for e, _ in effects), confused))
+        return real(flat, s, effects, init, start, confused=confused)
+
+    monkeypatch.setattr(P, "_fresh_fit", recorded)
+    rep, _ = _linear_drive_with_rules_open(tmp_path, monkeypatch)
+    assert sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
+    first = next(e for e in rep["findings"] if "conditional_gain" not in e)["effect"]
+    # the model without the further term takes the recipe of the one with it (the damping's)
+    assert ((first,), True) in calls
+    assert any(set(e) == {"viscous_damping", "coulomb_friction"} and c for e, c in calls)
+    assert ((), True) in calls                              # the term-free base of the confirmation
+    assert len(calls) == 3                                  # each fitted once (cached)
+    cf = rep["extended"]["confirmation"]
+    assert cf["against"] == "a base fitted from scratch with the same recipe" and cf["level"] == 0.975
+    assert "same recipe" in rep["extended"]["model"]
+    md = (tmp_path / "diagnosis.md").read_text()
+    assert "confirmed against a base fitted from scratch with the same recipe" in md
+
+
 def _fresh_extended_loses(monkeypatch, held_too: bool = False):
     """Make the extended model's first confirmation (the fit from scratch, judged at alpha 0.025) lose; with
     `held_too` the second one (the reference's refit with the terms held) as well."""

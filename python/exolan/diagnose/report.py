@@ -372,6 +372,10 @@ def markdown(rep: dict) -> str:
         L.append(f"Extended model ({', '.join(ext.get('terms', []))}) held-out gain: {_fmt(ext['heldout_gain'], 3)} "
                  f"({U})², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}"
                  + (f" ({ext['model']})." if ext.get("model") else "."))
+        cf = ext.get("confirmation")
+        if cf:
+            L.append(f"- confirmed against {cf['against']}: {_fmt(cf['gain'], 3)} ({U})², "
+                     f"{100 * cf['level']:.1f}% CI {_fmt(cf['ci'], 3)} ({cf['scale']})")
         for k, v in (ext.get("rollout_gain") or {}).items():
             L.append(f"- rollout {k} reduction: {_fmt(v['gain'], 3)} CI {_fmt(v['ci'], 3)}")
     nf = rep["baseline"].get("noise_floor")
