@@ -1349,15 +1349,19 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         two = base_start is not None
         alpha = 0.025 if two else 0.05
         u_ext, d_ext = held_errors(ext_model)
-        u_0, e_0 = e_ref_user, e_ref
-        against = ""
+        u_0, e_0, base_0 = e_ref_user, e_ref, "the reference"
         if two and _inertia_recipe(effs):
             u_0, e_0 = held_errors(fresh((), {}, recipe=tuple(effs)))
-            against = " (against a base fitted from scratch with the same recipe)"
+            base_0 = "a base fitted from scratch with the same recipe"
+        against = f" (against {base_0})" if e_0 is not e_ref else ""
+
+        def confirmed_by(g: dict, what: str) -> dict:
+            """The comparison that confirms the extended model, for the report (decision scale)."""
+            return dict(gain=g["gain"], ci=g["ci"], level=1 - alpha, scale=scale, against=what)
+
         g_dec = _gain(e_0, d_ext, s, alpha=alpha)
         confirmed = bool(g_dec["ci"][0] > 0 and _user_improves(u_0, u_ext))
-        confirmation = dict(gain=g_dec["gain"], ci=g_dec["ci"], level=1 - alpha, scale=scale,
-                            against="a base fitted from scratch with the same recipe" if against else "the reference")
+        confirmation = confirmed_by(g_dec, base_0)
         ext_how = ("fitted from scratch with the terms" + against if two else
                    "the given model refitted with the terms (warm start)")
         tried = _gci(g_dec) + (" from scratch" + against if two else "")
@@ -1369,8 +1373,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     f"the reference's refit with the terms held there {_gci(g_h)} ({scale})")
             if g_h["ci"][0] > 0 and _above_noise(g_h, sigma_r, alpha=alpha) and _user_improves(e_ref_user, u_h):
                 confirmed, ext_model, u_ext = True, held_at, u_h
-                confirmation = dict(gain=g_h["gain"], ci=g_h["ci"], level=1 - alpha, scale=scale,
-                                    against="the reference")
+                confirmation = confirmed_by(g_h, "the reference")
                 ext_how = "the reference's refit with the terms held at the estimates of their fit from scratch"
             tried += (f", {_gci(g_h)} as the reference's refit with the "
                       f"terms held there (beyond the refit noise required)")
