@@ -852,6 +852,41 @@ def test_a_nested_rival_pair_that_held_out_data_cannot_separate_takes_the_simple
     assert nested_choice([s, dict(effect="viscous_damping")]) is None
 
 
+def test_a_term_outdone_by_an_exo_driven_rival_that_failed_its_null_is_rejected():
+    """Rule 6 with a doubted rival: a hip strap that passes alone is rejected where a hip torque gain describes
+    the held-out data better but failed its null; not where the gain failed another rule too, nor where the two
+    cannot be separated, nor for a damping whose rival delay failed its null (a damping is not exo-driven)."""
+    from exolan.diagnose.procedure import Settings, _gain, outdone_by_a_doubted_rival
+
+    rng = np.random.default_rng(0)
+    e0 = 1.0 + rng.random(3000)
+    null_only = dict(status="rejected", passes=False, passes_gain=True, passes_floor=True, identifiable=True,
+                     passes_invariance=True, passes_null=False)
+
+    def verdicts(rival_errors, **rival_changes):
+        res = [dict(effect="strap_compliance", joint="hip", passes=True),
+               dict(effect="torque_gain", joint="hip", **{**null_only, **rival_changes}),
+               dict(effect="viscous_damping", joint="knee", passes=True),
+               dict(effect="actuation_delay", joint="knee", **null_only)]
+        errs = {("strap_compliance", "hip"): e0 - 0.05, ("torque_gain", "hip"): rival_errors,
+                ("viscous_damping", "knee"): e0 - 0.05, ("actuation_delay", "knee"): e0 - 0.4}
+        outdone_by_a_doubted_rival(res, lambda eff, nm: errs.get((eff, nm)),
+                                   lambda a, b: _gain(a, b, Settings(n_boot=200)))
+        return {(e["effect"], e["joint"]): e for e in res}
+
+    out = verdicts(e0 - 0.4)
+    strap = out[("strap_compliance", "hip")]
+    assert strap["status"] == "rejected" and not strap["passes"]
+    assert "torque_gain" in strap["reason"] and strap["rivals"]["torque_gain"]["ci"][1] < 0
+    damping = out[("viscous_damping", "knee")]
+    assert damping.get("status") is None and damping["passes"]
+    # the gain failed another rule as well: nothing says the signal is the exo torque's or not
+    assert verdicts(e0 - 0.4, passes_invariance=False)[("strap_compliance", "hip")].get("status") is None
+    # the two describe the held-out data alike: no better description has failed
+    tie = e0 - 0.05 + 0.01 * rng.standard_normal(e0.size)
+    assert verdicts(tie)[("strap_compliance", "hip")].get("status") is None
+
+
 def test_the_report_shows_rule_3s_nulls_of_an_exo_driven_finding():
     """A finding driven by the recorded exo torque lists every null it was held against (rule 3), the
     own-variation one with its own k, and marks a null that was not passed."""

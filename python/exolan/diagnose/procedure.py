@@ -52,7 +52,10 @@ statistic of the data at hand):
 6. **Rivals.** For confusable pairs (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap) on the same
    joint, when both pass 1-5 the paired held-out difference decides; if its CI contains 0 both are `ambiguous`
    — unless one reduces to the other in a limit (Stribeck to Coulomb as vs → ∞): then the simpler term is
-   taken (parsimony) and the other rejected. Forward selection: the best remaining term is accepted; every
+   taken (parsimony) and the other rejected. An exo-driven term whose exo-driven rival describes the held-out
+   data better (paired CI > 0) but was rejected by its null alone is rejected too: both describe the exo torque
+   acting otherwise than recorded, and the better description has failed to show that this signal is the exo
+   torque's (`outdone_by_a_doubted_rival`). Forward selection: the best remaining term is accepted; every
    other one must then add a gain beyond the noise floor, lower the user's unweighted error (as in rule 1) and
    pass rule 5, on top of the accepted terms and of the better term of each ambiguous set (the effect is
    there, only its form is open) — first with warm starts (the new term starting where the accepted model's
@@ -815,6 +818,52 @@ def _with_estimate(init: dict, entry: dict, j: int) -> dict:
     return init
 
 
+def _rejected_by_its_null_alone(e: dict) -> bool:
+    """An exo-driven candidate that passed rules 1, 2, 4 and 5 and failed only rule 3's null."""
+    return bool(e.get("status") == "rejected" and e.get("passes_gain") and e.get("passes_floor") and
+                e.get("identifiable") and e.get("passes_invariance") and e.get("passes_null") is False)
+
+
+def outdone_by_a_doubted_rival(results: list[dict], errors, compare) -> None:
+    """Rule 6 for rivals of which one fails its null: reject an exo-driven term whose exo-driven rival on the same
+    joint (gain/strap, delay/strap) describes the held-out data better but was rejected by its null alone.
+
+    Both terms say the same thing: the exo torque acts on the limb otherwise than recorded. The rival's null says
+    that its (larger) part of that signal cannot be told from model error that tracks the joint torque (the future
+    exo torque explains it as well), or, for a gain, does not show in the controller's own variation. A term that
+    takes a smaller part of the same signal is no better evidence for its own form: accepting it would name an
+    effect the better description has just failed to support. Measured (slow-test draw, world seed 2524, hip
+    torque gain 1.84): the gain term (k 1.68, decision gain 3.7e-4) failed its own-variation null, and a hip strap
+    of k ≈ 8300 N m/rad (a deflection of 1.6 mrad at 15 N m; decision gain 5.2e-5) passed everything alone and
+    was accepted. Pairs with a term that is not exo-driven (delay/damping) are left alone: a delay failing its
+    null supports a damping rather than casting doubt on it.
+
+    `errors(effect, joint)`: the candidate's held-out decision errors (None if it was not fitted);
+    `compare(e_ref, e_new)`: the paired held-out gain of e_new over e_ref (`_gain`). Mutates `results`.
+    """
+    for entry in results:
+        if entry.get("status") is not None or not entry.get("passes") or not LIBRARY[entry["effect"]].needs_exo:
+            continue
+        mine = errors(entry["effect"], entry["joint"])
+        for rv in rivals(entry["effect"]):
+            other = next((e for e in results if e["effect"] == rv and e["joint"] == entry["joint"]), None)
+            if other is None or not LIBRARY[rv].needs_exo or not _rejected_by_its_null_alone(other):
+                continue
+            theirs = errors(rv, entry["joint"])
+            if mine is None or theirs is None:
+                continue
+            d = compare(mine, theirs)           # > 0: the rival describes the held-out data better
+            if d["ci"][0] <= 0:
+                continue
+            entry["rivals"] = {**entry.get("rivals", {}), rv: dict(advantage=-d["gain"], ci=[-d["ci"][1], -d["ci"][0]])}
+            entry["passes"] = False
+            entry["status"] = "rejected"
+            entry["reason"] = (f"its rival {rv} on this joint describes the held-out data better (by {_gci(d)}) but "
+                               f"failed its null (rule 3): the signal both describe is not shown to be the exo "
+                               f"torque's, so the weaker description is not taken in its place")
+            break
+
+
 def _user_improves(e_before: np.ndarray, e_after: np.ndarray) -> bool:
     """The user's (unweighted) held-out torque error is lower on average: rule 1's second condition, also
     asked of a term on top of others."""
@@ -1171,6 +1220,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                                 "torque)")
             entry["status"] = "rejected"
             entry["reason"] = "; ".join(why)
+
+    outdone_by_a_doubted_rival(results, lambda eff, name: fitted.get((eff, flat.joints.index(name)), (None, None))[1],
+                               lambda a, b: _gain(a, b, s))
 
     # 5. forward selection among the passing candidates: take the largest held-out gain; a confusable rival
     #    on the same joint that held-out data cannot separate from it makes both ambiguous; every other

@@ -190,7 +190,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    HAC SE) and that every task's θ agrees (Cochran's Q, p > 0.05), with a mean gain above 0 there. No task
    may be made worse beyond its sampling and refit noise (Bonferroni over the tasks);
 6. confusable rivals on the same joint that held-out data cannot separate are `ambiguous` (where one reduces to
-   the other in a limit, Stribeck to Coulomb as vs → ∞, the simpler is taken); a further term must add held-out
+   the other in a limit, Stribeck to Coulomb as vs → ∞, the simpler is taken); an exo-driven term whose exo-driven
+   rival (gain/strap, delay/strap) describes the held-out data better but failed its null (rule 3) is rejected:
+   the signal both describe is not shown to be the exo torque's; a further term must add held-out
    gain beyond the noise floor (and lower the unweighted error) on top of the already accepted ones and of the
    better term of each ambiguous set (forward selection), confirmed with both models fitted from scratch where
    the base was fitted here; the extended model with the terms at their joint estimates must beat the base on
