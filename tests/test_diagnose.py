@@ -187,6 +187,16 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
             assert off and off[0]["status"] == "absorbable", msg
         return rep
     eff, joint, _ = WORLD_CASES[case]
+    if eff == "torque_gain":
+        # what the report calls detectable agrees with what was detected: a gain inside the limits the report
+        # measured for these data (by injection, `procedure.gain_injection`) may be missed, but nothing else may be
+        # accepted in its place (measured: a hip gain of 1.84, limit 1.80, once let a hip strap through)
+        lim = rep["detection_limits"]["torque_gain"][joint]
+        assert lim["method"] == "injection", msg
+        if lim["k_below"] <= value <= lim["k_above"]:
+            print(f"a gain of {value} is inside this world's detection limits [{lim['k_below']:.3g}, {lim['k_above']:.3g}]")
+            assert set(found) <= {(eff, joint)}, msg
+            return rep
     assert (eff, joint) in found, msg
     assert found == [(eff, joint)], f"something besides the planted effect was accepted; {msg}"
     f = next(x for x in rep["findings"] if x["effect"] == eff and x["joint"] == joint)
@@ -200,9 +210,6 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     else:
         assert abs(f["estimate"] - value) <= 0.2 * value, msg
     assert f["heldout_gain"] > 0, msg
-    if eff == "torque_gain":    # what the report calls detectable agrees with what was detected
-        lim = rep["detection_limits"]["torque_gain"][joint]
-        assert value > lim["k_above"] or value < lim["k_below"], msg
     if eff == "actuation_delay":    # a delay near the detection limit carries the warning that it reads short
         lim = rep["detection_limits"]["actuation_delay"][joint]["d_limit"]
         assert ("detection limit" in (f.get("note") or "")) == (f["estimate"] < 2 * lim), msg
@@ -222,6 +229,9 @@ def test_clean_world_finds_nothing(tmp_path):
     # the report says how far from 1 an exo torque gain would have to be to show in these data
     limits = rep["detection_limits"]["torque_gain"]
     assert set(limits) == {"hip", "knee"} and all(0 < v["k_below"] < 1 < v["k_above"] for v in limits.values())
+    # ... measured by writing a known gain into the data (`procedure.gain_injection`), the computed one beside it
+    assert all(v["method"] == "injection" and v["injected_k"] > 1 and "computed" in v for v in limits.values())
+    assert "written into the data was recovered as" in md
     # ... and how long an actuation delay would have to be
     delays = rep["detection_limits"]["actuation_delay"]
     assert set(delays) == {"hip", "knee"} and all(0 < v["d_limit"] < 0.1 for v in delays.values())

@@ -706,6 +706,63 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
     assert abs(v["theta_limit"] / lim[1.0] - 1) < 0.05
 
 
+def test_the_injected_limit_scales_the_injections_gain_as_theta_squared():
+    """u = (θ/θ0)²: the test's bound u g0 = 1.96 √(u se0² + σ_r²). Sampling-dominated, √u = 1.96 se0 / g0; refit-
+    noise-dominated, u = 1.96 σ_r / g0; an injection that did not show gives no limit."""
+    from exolan.diagnose.procedure import _injected_limit
+
+    assert _injected_limit(4 * 1.96 * 1e-5, 1e-5, 0.0, 0.6) == pytest.approx(0.15)
+    assert _injected_limit(1.96e-4, 0.0, 1e-5, 0.4) == pytest.approx(0.4 * math.sqrt(0.1))
+    assert _injected_limit(-1e-5, 1e-5, 0.0, 0.4) == math.inf
+    # both noises: between the two one-noise answers' larger one and their root-sum-square
+    both = _injected_limit(1e-4, 1e-5, 1e-5, 0.5)
+    one = max(_injected_limit(1e-4, 1e-5, 0.0, 0.5), _injected_limit(1e-4, 0.0, 1e-5, 0.5))
+    assert one < both < math.hypot(_injected_limit(1e-4, 1e-5, 0.0, 0.5), _injected_limit(1e-4, 0.0, 1e-5, 0.5))
+
+
+def test_the_gains_limit_by_injection_writes_a_known_gain_into_data_cleaned_of_the_own_variations_share(
+        small_world, monkeypatch):
+    """Mechanics of `gain_injection` (fits made no-ops): the base is fitted on the recorded joint torque less the
+    share of the controller's own variation o that the reference leaves (0.3 o here), plus θ0 τ_e with θ0 twice
+    the computed limit; a limit far from θ0 is measured again by a second injection at 1.2 times it."""
+    from exolan.diagnose import procedure as P
+
+    flat = prepare(P.load_trials(small_world))
+    held = flat.index("held")
+    own = {j: flat.tau_e[:, j] - P.exo_copy(flat, j).tau_e[:, j] for j in range(2)}
+    monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - 0.3 * torch.stack([own[0], own[1]], 1)[idx])
+    fitted = []
+    monkeypatch.setattr(P, "train", lambda model, f, *a, **k: fitted.append(f.tau.clone()))
+    monkeypatch.setattr(P, "_refit", lambda *a, **k: None)
+    s = Settings(n_boot=100, hidden=8, verbose=False)
+    base = make_base(flat, hidden=8)
+    analytic = {"hip": dict(theta_limit=0.15), "knee": dict(theta_limit=0.3)}
+
+    def limits(scale):
+        fitted.clear()
+        real = P._injected_limit
+        monkeypatch.setattr(P, "_injected_limit", lambda g0, se0, sr, th0: scale(th0))
+        out = P.gain_injection(flat, s, base, base, held, 1e-6, analytic)
+        monkeypatch.setattr(P, "_injected_limit", real)
+        return out
+
+    out = limits(lambda th0: th0)            # the limit lies at the injection: one fit
+    assert len(fitted) == 1 and set(out) == {"hip", "knee"}
+    for j, th0 in ((0, 0.3), (1, 0.6)):
+        expect = flat.tau[:, j] - 0.3 * own[j] + th0 * flat.tau_e[:, j]
+        assert torch.allclose(fitted[0][:, j], expect, atol=1e-3 * float(flat.tau[:, j].abs().max()))
+        v = out[flat.joints[j]]
+        assert v["injected_k"] == pytest.approx(1 / (1 - th0)) and v["k_above"] == pytest.approx(1 / (1 - th0))
+    out = limits(lambda th0: th0 / 4)        # far below it: measured again at 1.2 times the first answer
+    assert len(fitted) == 2
+    for j, th0, th1 in ((0, 0.3, 0.1), (1, 0.6, 0.18)):       # 1.2 θ0 / 4, at least 0.1
+        assert torch.allclose(fitted[1][:, j] - fitted[0][:, j], (th1 - th0) * flat.tau_e[:, j], atol=1e-3)
+        v = out[flat.joints[j]]
+        assert v["injected_k"] == pytest.approx(1 / (1 - th1)) and v["first_injection"]["injected_k"] == \
+            pytest.approx(1 / (1 - th0))
+    assert P.gain_injection(flat, s, None, base, held, 1e-6, analytic) == {}     # a given run: computed limits
+
+
 def test_the_delays_detection_limit_follows_the_rate_of_the_controllers_own_variation(monkeypatch):
     """The shortest delay d that can show: the gain's arithmetic with the rate ȯ of the controller's own
     variation in place of o (a delay changes the joint torque by τ_e(t) − τ_e(t−d) ≈ d τ̇_e). Checked against the

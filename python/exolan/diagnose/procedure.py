@@ -27,7 +27,8 @@ statistic of the data at hand):
    there. Required: the real candidate beats its nulls on held-out data (paired CI of the difference > 0). A
    delay whose CI reaches the largest delay searched is not identified. So a gain shows only through the
    controller's own variation, and one close to 1 cannot show at all: the report states, per joint, the gains
-   these data could detect (`gain_detection_limit`), and the shortest delay (`delay_detection_limit`: a delay
+   these data could detect (`gain_detection_limit`, measured where the base is fitted here by writing a known gain
+   into the data and running this test on it, `gain_injection`), and the shortest delay (`delay_detection_limit`: a delay
    acts, to first order, through the rate of that variation).
 4. **Valid sign and identifiable.** Signs are enforced by the parametrisation (D PSD, Fc, Fs, d, 1/k ≥ 0);
    a parameter that the fit drives to its boundary is not identified. The parameter's 95% CI (Gauss-Newton
@@ -154,6 +155,7 @@ class Settings:
     pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (fit.PelvisSurge)
     lim_cop: bool = True        # base: the insole mapping's lever arms see the centre of pressure, B(q, x_cop, z)
     adapt_model: bool = True    # a given model (`--model`): fit it at its pooled context first (fit.PooledContext)
+    inject_gain: bool = True    # the gain's detection limit by injection and recovery (`gain_injection`), not computed
     verbose: bool = True
 
 
@@ -295,6 +297,95 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
         if d is not None:
             delay[name] = dict(d_limit=d, **sizes)
     return {"torque_gain": gain, "actuation_delay": delay}
+
+
+def _injected_limit(g0: float, se0: float, sigma_r: float, theta0: float) -> float:
+    """The |θ| at which rule 3's own-variation test would just pass, scaled from one injection at θ0 that gave the
+    held-out gain g0 with bootstrap SE se0: the gain grows as θ² and its sampling error (2 θ SE(w o ε)) as θ, so
+    with u = (θ/θ0)² the test's bound u g0 = 1.96 √(u se0² + σ_r²) is a quadratic in u. Infinite where the
+    injection itself did not show (g0 ≤ 0)."""
+    if not (g0 > 0 and np.isfinite(se0)):
+        return float("inf")
+    z2 = 1.96 ** 2
+    u = (z2 * se0 ** 2 + math.sqrt(z2 ** 2 * se0 ** 4 + 4.0 * g0 ** 2 * z2 * sigma_r ** 2)) / (2.0 * g0 ** 2)
+    return theta0 * math.sqrt(u)
+
+
+def gain_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, sigma_r: float, analytic: dict) -> dict:
+    """Per joint of `analytic` (`gain_detection_limit`): the torque gain these data can show, measured by injection
+    and recovery instead of computed at the base's present misfit.
+
+    Why: the computed limit assumes every bit of θ o reaches the held-out gain, but a base fitted on data holding a
+    gain absorbs part of the controller's own variation o too (a saturating controller's o is partly a function of
+    the motion), and rule 3 tests the term fitted on o alone. Measured (slow-test world seed 2524): the computed
+    limit said a hip gain shows above k ≈ 1.32, and a planted 1.84 did not (own-variation null 4.8e-5
+    [-3.0e-6, 1.0e-4], the term's k 1.56). So a known gain k0 = 1/(1 − θ0) is written into the recorded joint
+    torque (τ_rec + θ0 τ_e: what a sensor over-reporting the exo torque by k0 does), after the share of o that the
+    reference leaves in its training residual is taken out (a gain already in the data would add to the injected
+    one), the base is fitted again from its start with the same recipe, and the own-variation test of rule 3 is
+    run on it as on the data (reference refit, the post-hoc screen's start, the term on o alone): its held-out
+    gain g0 and SE scale to the θ where the test just passes (`_injected_limit`). One fit with every joint
+    injected at once: a joint's test leaves the other's injection in both models, which costs it power (a
+    conservative limit), not bias. θ0 is twice the computed limit (within [0.2, 0.8]): where the injection shows
+    clearly if the computed limit is right, and not far from the answer if it is not, so that the θ² scaling is
+    short; where the answer lies outside [0.6, 1.5] θ0 after all, a second injection at 1.2 times it decides. Where
+    the base is a given run (no start to fit from) the computed limit is kept."""
+    joints = [j for j, nm in enumerate(flat.joints) if nm in analytic]
+    if base_start is None or not joints:
+        return {}
+    theta0 = {j: float(np.clip(2.0 * analytic[flat.joints[j]]["theta_limit"], 0.2, 0.8)) for j in joints}
+    train_rows = flat.index("train")
+    resid = flat.tau[train_rows] - predict(ref, flat, train_rows)
+    cleaned = flat.tau.clone()
+    for j in joints:
+        # the data may hold a gain already, which an injection would add to (measured, the world above: 1.58
+        # written on top of the planted 1.84 was recovered as 4.81 and the limit came out at k 1.30). So the share
+        # of the own variation that the reference leaves in its training residual (least squares) comes out
+        # first, as the computed limit does: what is left is absorbed by the base anyway
+        o = flat.tau_e[:, j] - exo_copy(flat, j).tau_e[:, j]
+        beta = float((resid[:, j] * o[train_rows]).sum() / (o[train_rows] ** 2).sum().clamp(min=1e-12))
+        cleaned[:, j] = flat.tau[:, j] - beta * o
+
+    def measure(theta0: dict) -> dict:
+        inj = copy.copy(flat)
+        inj.tau = cleaned.clone()
+        for j in joints:
+            inj.tau[:, j] += theta0[j] * flat.tau_e[:, j]
+        inj.weight = None
+        base_i = copy.deepcopy(base_start)
+        train(base_i, inj, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+        if s.weighted:
+            inj.weight = misfit_weights(base_i, inj)
+        w = inj.weight[held].numpy().astype(np.float64) if s.decide_weighted and inj.weight is not None else None
+        ref_i = copy.deepcopy(base_i)
+        _refit(ref_i, inj, s)
+        e_ref = _held_errors(ref_i, inj, held, w)[1]
+        out = {}
+        for j in joints:
+            own = exo_own(inj, j)
+            sc = screen(ref_i, inj, "torque_gain", j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
+            alone = extend(base_i, own, [("torque_gain", j)], init=_screen_init("torque_gain", sc),
+                           max_delay=s.max_delay)
+            _refit(alone, own, s)
+            g = _gain(e_ref, _held_errors(alone, own, held, w)[1], s)
+            th = _injected_limit(g["gain"], g["se"], sigma_r, theta0[j])
+            k0, k_hat = 1.0 / (1.0 - theta0[j]), alone.estimate("torque_gain", j)
+            out[j] = dict(theta_limit=th, k_below=1.0 / (1.0 + th), k_above=1.0 / (1.0 - th) if th < 1.0 else float("inf"),
+                          injected_k=k0, recovered_k=k_hat, injected_gain=g["gain"], injected_gain_ci=g["ci"],
+                          passes_at_injection=_own_variation_passes(g, sigma_r, k_hat, k0))
+        return out
+
+    first = measure(theta0)
+    # the θ² scaling holds near the injection (the base absorbs a share of it that need not be the same for a
+    # small and a large gain: measured, a clean world's hip, k 5 injected → limit k 1.51): where the limit lies
+    # far from it, a second injection at the limit (1.2 times it) gives the answer
+    again = {j: float(np.clip(1.2 * v["theta_limit"], 0.1, 0.8)) for j, v in first.items()
+             if not 0.6 * theta0[j] <= v["theta_limit"] <= 1.5 * theta0[j]}
+    again = {j: v for j, v in again.items() if abs(v - theta0[j]) > 1e-6}
+    if again:
+        second = measure({**theta0, **again})
+        first.update({j: dict(second[j], first_injection=first[j]) for j in again})
+    return {flat.joints[j]: v for j, v in first.items()}
 
 
 def _future_peak(x: torch.Tensor, tau_e: torch.Tensor, min_lag: int, max_lag: int) -> int:
@@ -1057,6 +1148,15 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                                    scale=scale)
     structure = R.residual_structure(ref, flat, held)
     limits = detection_limits(flat, ref, held, w_held, sigma_r, s)
+    if s.inject_gain:
+        t1 = time.time()
+        for name, v in gain_injection(flat, s, base_start, ref, held, sigma_r, limits["torque_gain"]).items():
+            computed = limits["torque_gain"][name]
+            limits["torque_gain"][name] = dict(computed, **v, method="injection", computed=dict(
+                theta_limit=computed["theta_limit"], k_below=computed["k_below"], k_above=computed["k_above"]))
+            _log(s, f"torque gain on {name}: a gain of {v['injected_k']:.3g} written into the data was recovered as "
+                    f"{v['recovered_k']:.3g} on the own variation, held-out gain {v['injected_gain']:.3g} "
+                    f"[{v['injected_gain_ci'][0]:.3g}, {v['injected_gain_ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
     for name, v in limits["torque_gain"].items():
         _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
                 f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
