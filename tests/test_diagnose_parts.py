@@ -1077,3 +1077,20 @@ def test_rollouts_of_a_gated_term_follow_each_starts_trial():
     np.testing.assert_allclose(e_g[:3], e_b[:3], rtol=1e-9)      # trial 0: the term is off
     np.testing.assert_allclose(e_g[3:], e_w[3:], rtol=1e-9)      # trial 1: on
     assert not np.allclose(e_w[:3], e_b[:3])
+
+
+def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch):
+    """`exolan diagnose`'s switches set real `Settings` fields (none silently ignored)."""
+    import dataclasses
+
+    import exolan.diagnose as D
+    from exolan.cli import main
+
+    seen = {}
+    monkeypatch.setattr(D, "diagnose", lambda data, model=None, out=None, quick=False, **kw: seen.update(kw) or
+                        {"findings": []})
+    assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--computed-gain-limit", "--unweighted",
+                 "--no-adapt-model", "--no-lim-cop", "--no-pelvis-surge", "--pelvis-tilt", "--seed", "3"]) == 0
+    assert seen == dict(inject_gain=False, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
+                        pelvis_tilt=True, seed=3)
+    assert set(seen) <= {f.name for f in dataclasses.fields(D.Settings)}

@@ -127,6 +127,9 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
                         "them to the data's training segments first")
     p.add_argument("--pelvis-tilt", action="store_true",
                    help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
+    p.add_argument("--computed-gain-limit", action="store_true",
+                   help="report the exo torque gain's detection limit as computed at the base's misfit (optimistic) "
+                        "instead of measuring it by writing a known gain into the data (saves one or two base fits)")
 
     p = sub.add_parser("pipeline", help="the main job: simulate, train, evaluate, export, rollout, diagnose, report")
     p.add_argument("--out", default="out/main")

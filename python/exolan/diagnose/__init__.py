@@ -145,6 +145,8 @@ def cli_diagnose(args) -> int:
         settings["lim_cop"] = False
     if getattr(args, "no_adapt_model", False):
         settings["adapt_model"] = False
+    if getattr(args, "computed_gain_limit", False):
+        settings["inject_gain"] = False
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:
