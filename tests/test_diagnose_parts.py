@@ -1094,3 +1094,24 @@ def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch):
     assert seen == dict(inject_gain=False, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
                         pelvis_tilt=True, seed=3)
     assert set(seen) <= {f.name for f in dataclasses.fields(D.Settings)}
+
+
+def test_the_reports_limits_table_says_none_where_no_gain_shows_and_lists_each_injection():
+    """A measured gain limit that the injection could not reach is "none" in the table, and its line says so; a
+    finite one is shown with the injection that measured it and the computed limit beside it."""
+    from exolan.diagnose.report import _limit_lines
+
+    sizes = dict(rms_exo=5.0, copy_share=0.94, rms_own=1.3)
+    inj = dict(method="injection", injected_k=5.0, recovered_k=2.5, injected_gain=-2e-5, injected_gain_ci=[-1e-4, 1e-4],
+               passes_at_injection=False, computed=dict(k_below=0.47, k_above=float("inf")))
+    gain = {"hip": dict(sizes, k_below=0.0, k_above=float("inf"), **inj),
+            "knee": dict(sizes, k_below=0.8, k_above=1.25, **dict(inj, injected_k=1.6, recovered_k=1.5,
+                                                                      injected_gain=5e-5, passes_at_injection=True))}
+    text = "\n".join(_limit_lines({"torque_gain": gain, "actuation_delay": {"hip": dict(sizes, d_limit=0.02)}}))
+    assert "| hip | 5 | 94 % | 1.3 | none | none | 20 |" in text
+    assert "| knee | 5 | 94 % | 1.3 | 0.8 | 1.25 | — |" in text
+    assert "measured, not computed" in text
+    hip_line = next(x for x in text.splitlines() if x.startswith("- hip"))
+    assert "no gain up to that size shows" in hip_line and "does not pass" in hip_line
+    knee_line = next(x for x in text.splitlines() if x.startswith("- knee"))
+    assert "a gain of 1.6 written into the data" in knee_line and "no gain up to" not in knee_line

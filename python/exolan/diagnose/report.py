@@ -305,6 +305,11 @@ def _evidence_lines(f: dict) -> list[str]:
     return out
 
 
+def _k_cell(k) -> str:
+    """A gain limit's table cell: "none" where no gain on that side shows (θ limit ≥ 1: k ≤ 0.5 … 0, or ∞)."""
+    return "none" if k is not None and (k == 0 or not np.isfinite(k)) else _fmt(k, 3)
+
+
 def _limit_lines(limits: dict) -> list[str]:
     """The 'What these data cannot show' section: the torque gain's and the actuation delay's detection limits
     per joint."""
@@ -332,7 +337,7 @@ def _limit_lines(limits: dict) -> list[str]:
         v = gain.get(j) or delay.get(j)
         dl = delay.get(j, {}).get("d_limit")
         L.append(f"| {j} | {_fmt(v['rms_exo'], 3)} | {100 * v['copy_share']:.0f} % | {_fmt(v['rms_own'], 3)} | "
-                 f"{_fmt(gain.get(j, {}).get('k_below'), 3)} | {_fmt(gain.get(j, {}).get('k_above'), 3)} | "
+                 f"{_k_cell(gain.get(j, {}).get('k_below'))} | {_k_cell(gain.get(j, {}).get('k_above'))} | "
                  f"{_fmt(None if dl is None else 1e3 * dl, 3)} |")
     L.append("")
     for j, v in gain.items():
@@ -341,7 +346,9 @@ def _limit_lines(limits: dict) -> list[str]:
             L.append(f"- {j}: a gain of {_fmt(v['injected_k'], 3)} written into the data was recovered as "
                      f"{_fmt(v['recovered_k'], 3)} on the own variation alone, held-out gain {_fmt(v['injected_gain'], 3)} "
                      f"[{_fmt(v['injected_gain_ci'][0], 3)}, {_fmt(v['injected_gain_ci'][1], 3)}] "
-                     f"({'passes' if v['passes_at_injection'] else 'does not pass'} rule 3 there); computed at the "
+                     f"({'passes' if v['passes_at_injection'] else 'does not pass'} rule 3 there"
+                     f"{'' if np.isfinite(v['k_above']) else ': no gain up to that size shows in these data at the base’s misfit'}"
+                     f"); computed at the "
                      f"base's misfit the limits would be k = {_fmt(c['k_below'], 3)} and {_fmt(c['k_above'], 3)}.")
     if any(v.get("method") == "injection" for v in gain.values()):
         L.append("")
