@@ -299,6 +299,17 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
     return {"torque_gain": gain, "actuation_delay": delay}
 
 
+def _on_own_variation(base, flat: Flat, j: int, init: dict, e_ref: np.ndarray, held: torch.Tensor,
+                      w_held: np.ndarray | None, s: Settings) -> tuple[dict, float]:
+    """Rule 3's own-variation test of a torque gain on joint j: the term refitted (warm, from `base`) on the
+    controller's own variation alone (`fit.exo_own`); its paired held-out gain over the errors `e_ref` and its k.
+    One home for the data's test and the injection's (`gain_injection`), which must run the same test."""
+    own = exo_own(flat, j)
+    alone = extend(base, own, [("torque_gain", j)], init=init, max_delay=s.max_delay)
+    _refit(alone, own, s)
+    return _gain(e_ref, _held_errors(alone, own, held, w_held)[1], s), alone.estimate("torque_gain", j)
+
+
 def _injected_limit(g0: float, se0: float, sigma_r: float, theta0: float) -> float:
     """The |θ| at which rule 3's own-variation test would just pass, scaled from one injection at θ0 that gave the
     held-out gain g0 with bootstrap SE se0: the gain grows as θ² and its sampling error (2 θ SE(w o ε)) as θ, so
@@ -362,14 +373,10 @@ def gain_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor,
         e_ref = _held_errors(ref_i, inj, held, w)[1]
         out = {}
         for j in joints:
-            own = exo_own(inj, j)
             sc = screen(ref_i, inj, "torque_gain", j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
-            alone = extend(base_i, own, [("torque_gain", j)], init=_screen_init("torque_gain", sc),
-                           max_delay=s.max_delay)
-            _refit(alone, own, s)
-            g = _gain(e_ref, _held_errors(alone, own, held, w)[1], s)
+            g, k_hat = _on_own_variation(base_i, inj, j, _screen_init("torque_gain", sc), e_ref, held, w, s)
             th = _injected_limit(g["gain"], g["se"], sigma_r, theta0[j])
-            k0, k_hat = 1.0 / (1.0 - theta0[j]), alone.estimate("torque_gain", j)
+            k0 = 1.0 / (1.0 - theta0[j])
             out[j] = dict(theta_limit=th, k_below=1.0 / (1.0 + th), k_above=1.0 / (1.0 - th) if th < 1.0 else float("inf"),
                           injected_k=k0, recovered_k=k_hat, injected_gain=g["gain"], injected_gain_ci=g["ci"],
                           passes_at_injection=_own_variation_passes(g, sigma_r, k_hat, k0))
@@ -1272,12 +1279,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             # same term on the copy: both refits move the base far (each 3e-4 below the reference) and their
             # difference is noisy; a hip gain of 1.87 beat that null by 1.9e-5 [-1.1e-5, 5.3e-5] (world
             # seed 6079), its warm k 1.56 overshooting the own variation's share while holding the copy's.
-            own = exo_own(flat, j)
             init = _gated(_screen_init(entry["effect"], entry.get("screen", {})), entry, j)
-            alone = extend(base, own, [(entry["effect"], j)], init=init, max_delay=s.max_delay)
-            _refit(alone, own, s)
-            gn = _gain(e_ref, held_errors(alone, own)[1], s)
-            k_own = alone.estimate(entry["effect"], j)
+            gn, k_own = _on_own_variation(base, flat, j, init, e_ref, held, w_held, s)
             nulls.append(dict(gain=gn["gain"], ci=gn["ci"], own_variation_only=True, estimate=k_own,
                               passes=_own_variation_passes(gn, sigma_r, k_own, entry["estimate"])))
             _log(s, f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "

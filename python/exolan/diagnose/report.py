@@ -317,6 +317,7 @@ def _limit_lines(limits: dict) -> list[str]:
     delay = limits.get("actuation_delay") or {}
     if not gain and not delay:
         return []
+    measured = any(v.get("method") == "injection" for v in gain.values())
     L = ["## What these data cannot show",
          "A torque gain error k or an actuation delay d shows only through the controller's own variation: the "
          "part of the exo torque that copies the joint torque is absorbed by a base that predicts the joint torque "
@@ -329,7 +330,7 @@ def _limit_lines(limits: dict) -> list[str]:
           "torque, the base fitted again from its start and rule 3's own-variation test run on it as on the data; "
           "its held-out gain, scaled as θ², gives the gain at which the test would just pass "
           "(`procedure.gain_injection`; per joint below the table)."
-          if any(v.get("method") == "injection" for v in gain.values()) else ""), "",
+          if measured else ""), "",
          "| joint | exo torque rms [N m] | share that copies the joint torque | own variation rms [N m] | "
          "a gain shows below k = | or above k = | a delay shows above d = [ms] |",
          "|---|---|---|---|---|---|---|"]
@@ -350,7 +351,7 @@ def _limit_lines(limits: dict) -> list[str]:
                      f"{'' if np.isfinite(v['k_above']) else ': no gain up to that size shows in these data at the base’s misfit'}"
                      f"); computed at the "
                      f"base's misfit the limits would be k = {_fmt(c['k_below'], 3)} and {_fmt(c['k_above'], 3)}.")
-    if any(v.get("method") == "injection" for v in gain.values()):
+    if measured:
         L.append("")
     return L
 
