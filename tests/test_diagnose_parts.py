@@ -1036,6 +1036,18 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(mo
     assert ext.gated == ("viscous_damping",)
     np.testing.assert_array_equal(ext.gate_trials()["viscous_damping"][1], on)
     assert P._gated({"x": 1}, {"effect": "viscous_damping"}, 1) == {"x": 1}
+    # a damping is linear in its parameter: the same data also propose every subject at their own size
+    assert form["users"] == ["S01", "S02"]
+    np.testing.assert_array_equal(form["subject_of_trial"], [0 if m["subject"] == "S01" else 1 for m in flat.trial_meta])
+    # both subjects with a damping of different sizes: no switch, only the sizes
+    with_residual(2.0, 0.8)
+    form = P.subject_form(None, flat, "viscous_damping", 1, {})
+    assert "subjects" not in form and form["users"] == ["S01", "S02"]
+    sized = dict(form, kind="sizes", log_sizes=[0.45, -0.45])
+    init = P._gated({"viscous_damping": 1.0}, {"effect": "viscous_damping", "_subject_form": sized}, 1)
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)], init=init)
+    assert ext.sized == ("viscous_damping",) and not ext.switched
+    np.testing.assert_allclose(ext.size_values()["viscous_damping"][1], [0.45, -0.45], atol=1e-12)
     for b01, b02 in ((2.0, 2.0), (0.0, 0.0)):
         with_residual(b01, b02)
         assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None, (b01, b02)
@@ -1047,6 +1059,33 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(mo
     for m in flat.trial_meta:
         m["name"] = m["subject"]
     assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
+
+
+def test_a_sized_terms_value_by_subject_is_its_subjects_own():
+    """`_param_by_subject`: θ_u = θ e^{a_u} of a sized term for each subject, with an interval from that subject's
+    training rows that holds it when the recorded torque is the model's own (plus noise); a stiffness is
+    reported as k."""
+    from exolan.diagnose import procedure as P
+
+    trials = []
+    for subj in ("S01", "S02"):
+        for t in _leg_pair(T=1500, seed=int(subj[-1])):
+            t.subject, t.name = subj, "walk_1_1"
+            trials.append(t)
+    flat = prepare(trials)
+    sub = [0 if m["subject"] == "S01" else 1 for m in flat.trial_meta]
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)],
+                 init={"viscous_damping": 1.5, "sized": {"viscous_damping": {1: [0.3, -0.3]}}, "subject_of_trial": sub})
+    rng = np.random.default_rng(0)
+    with torch.no_grad():
+        tau = P.predict(ext, flat, torch.arange(flat.q.shape[0]))
+    flat.tau = tau + torch.as_tensor(rng.normal(0, 0.02, tau.shape), dtype=tau.dtype) * flat.mass[:, None]
+    by = P._param_by_subject(ext, flat, "viscous_damping", 1, ["S01", "S02"])
+    for u, a in (("S01", 0.3), ("S02", -0.3)):
+        assert by[u]["estimate"] == pytest.approx(1.5 * math.exp(a), rel=1e-6)
+        assert by[u]["size"] == pytest.approx(math.exp(a), rel=1e-6)     # float32 models
+        lo, hi = by[u]["ci"]
+        assert lo < by[u]["estimate"] < hi and hi - lo < 0.2 * by[u]["estimate"]
 
 
 def test_an_extended_models_files_name_the_subjects_of_its_gated_terms():

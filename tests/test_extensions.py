@@ -210,6 +210,75 @@ def test_a_gated_term_acts_on_its_own_trials_only():
         ExtendedModel(base, 2, [("viscous_damping", 1)], init={"gates": {"viscous_damping": {0: [1.0]}}})
 
 
+def test_a_sized_term_acts_at_each_subjects_own_size():
+    """`init["sized"]`: each subject u has θ_u = θ e^{a_u} with the log sizes centred (θ the geometric mean), for
+    every term linear in its parameter; on a trial the model equals the shared model at that subject's value,
+    `physical(trial)` reports it, the friction stays dissipative, and the sizes are learnt (they get gradients)."""
+    base = _base()
+    effects = [("viscous_damping", 1), ("coulomb_friction", 1), ("encoder_offset", 0), ("strap_compliance", 1),
+               ("torque_bias", 0)]
+    init = {"viscous_damping": 1.3, "coulomb_friction": 0.8, "encoder_offset": 0.03, "strap_compliance": 150.0,
+            "torque_bias": 0.4}
+    a = np.array([0.5, 0.1, -0.3])            # not centred: the model centres them (mean 0.1)
+    subject_of_trial = [0, 2, 1, 2]
+    sized = ExtendedModel(base, 2, effects, dt=0.005, max_delay=0.05,
+                          init=dict(init, sized={e: {j: a} for e, j in effects}, subject_of_trial=subject_of_trial))
+    assert set(sized.sized) == {e for e, _ in effects} and set(sized.gated) == set(sized.sized)
+    ac = a - a.mean()
+    np.testing.assert_allclose(sized.size_values()["viscous_damping"][1], ac, atol=1e-12)
+    B = 16
+    g = torch.Generator().manual_seed(3)
+    q, qd, qdd = (torch.randn(B, 2, generator=g) for _ in range(3))
+    hist = torch.randn(B, 12, 2, generator=g)
+    z = _z(B, base); fv = torch.zeros(B)
+    trial = torch.tensor([0, 1, 2, 3] * 4)
+    got = sized.inverse(q, qd, qdd, z, fv, hist, hist, hist, trial=trial)
+    for t, u in enumerate(subject_of_trial):
+        f = math.exp(ac[u])
+        own = {"viscous_damping": 1.3 * f, "coulomb_friction": 0.8 * f, "encoder_offset": 0.03 * f,
+               "strap_compliance": 150.0 / f, "torque_bias": 0.4 * f}
+        shared = ExtendedModel(base, 2, effects, dt=0.005, max_delay=0.05, init=own)
+        rows = trial == t
+        assert torch.allclose(got[rows], shared.inverse(q, qd, qdd, z, fv, hist, hist, hist)[rows], atol=1e-9)
+        p = sized.physical(t)
+        assert p["viscous_damping"][1, 1] == pytest.approx(1.3 * f, rel=1e-9)
+        assert p["strap_compliance"][1] == pytest.approx(150.0 / f, rel=1e-9)
+        assert sized.trial_factor("coulomb_friction", 1, t) == pytest.approx(f, rel=1e-12)
+        assert sized.trial_factor("coulomb_friction", 0, t) == 1.0       # a joint without the term's sizes
+    # the geometric mean is the shared parameter; passivity per sample; sizes are learnt
+    assert sized.estimate("viscous_damping", 1) == pytest.approx(1.3, rel=1e-9)
+    assert bool((sized.dissipated_power(qd, trial=trial) >= 0).all())
+    got.sum().backward()
+    assert float(sized.size_viscous_damping.grad[:, 1].abs().sum()) > 0
+    assert sized.size_viscous_damping in sized.ext_parameters()
+    # carried to a refit: the same model again
+    again = ExtendedModel(base, 2, effects, dt=0.005, max_delay=0.05, init=dict(init, **sized.subject_init()))
+    assert torch.allclose(again.inverse(q, qd, qdd, z, fv, hist, hist, hist, trial=trial), got, atol=1e-12)
+    # sizes only for terms linear in their parameter, with a subject per trial, on the model's own terms
+    with pytest.raises(ValueError, match="linear in their parameter"):
+        ExtendedModel(base, 2, [("actuation_delay", 1)], init={"sized": {"actuation_delay": {1: None}},
+                                                               "subject_of_trial": [0, 1]})
+    with pytest.raises(ValueError, match="subject_of_trial"):
+        ExtendedModel(base, 2, [("viscous_damping", 1)], init={"sized": {"viscous_damping": {1: None}}})
+    with pytest.raises(ValueError, match="no such term"):
+        ExtendedModel(base, 2, [("viscous_damping", 1)], init={"sized": {"viscous_damping": {0: None}},
+                                                               "subject_of_trial": [0, 1]})
+    with pytest.raises(ValueError, match="3 values for 2 subjects"):
+        ExtendedModel(base, 2, [("viscous_damping", 1)], init={"sized": {"viscous_damping": {1: [0.0, 0.1, 0.2]}},
+                                                               "subject_of_trial": [0, 1]})
+
+
+def test_set_value_writes_a_physical_parameter():
+    ext = ExtendedModel(_base(), 2, [("viscous_damping", 1), ("strap_compliance", 0), ("torque_gain", 1),
+                                      ("encoder_offset", 1)], dt=0.005)
+    for eff, j, v in (("viscous_damping", 1, 2.2), ("strap_compliance", 0, 95.0), ("torque_gain", 1, 1.7),
+                      ("encoder_offset", 1, -0.04)):
+        ext.set_value(eff, j, v)
+        assert ext.estimate(eff, j) == pytest.approx(v, rel=1e-9)
+    with pytest.raises(ValueError, match="not set this way"):
+        ext.set_value("actuation_delay", 1, 0.01)
+
+
 def test_ext_tensors_follow_the_design_names_and_shapes():
     base = _base()
     ext = ExtendedModel(base, 2, [("viscous_damping", 1), ("coulomb_friction", 0), ("stribeck_friction", 0),

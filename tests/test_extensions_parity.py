@@ -1,5 +1,7 @@
 """Rust parity of the extended model: the diagnosis' `ExtendedModel` exported through `exolan.export`
 (base folded at a fixed context z, `ext.*` tensors) and run by the engine agrees with torch in float64."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -129,3 +131,29 @@ def test_a_users_export_holds_that_users_subject_specific_terms_and_matches_torc
             t_torch = ext.inverse(q, qd, qdd, z.expand(B, 4), fv, trial=torch.full((B,), trial)).numpy()
         t_eng = eng.inverse_dynamics(q.numpy(), qd.numpy(), qdd.numpy(), f_v=fv.numpy())
         assert np.abs(t_eng - t_torch).max() <= 1e-9 * np.abs(t_torch).max()
+
+
+def test_a_users_export_holds_that_users_own_size_of_a_sized_term(tmp_path):
+    """A term with per-subject sizes is written at each user's own value and agrees with the torch model on
+    that user's trials."""
+    effects = [("viscous_damping", 1), ("coulomb_friction", 0)]
+    torch.manual_seed(1)
+    b = SlowContextDeLaN(("revolute", "revolute"), 3, z_dim=4, hidden=16, lim=True, v_scale=5.0).double()
+    ext = ExtendedModel(b, 2, effects, dt=0.005, max_delay=0.05,
+                        init=dict(ALL, sized={"viscous_damping": {1: [0.4, -0.4]}, "coulomb_friction": {0: [0.2, 0.0]}},
+                                  subject_of_trial=[0, 1, 1])).double()
+    B = 32
+    g = torch.Generator().manual_seed(4)
+    q, qd, qdd = (torch.randn(B, 2, generator=g, dtype=torch.float64) for _ in range(3))
+    fv = 300 * torch.rand(B, generator=g, dtype=torch.float64)
+    damping = []
+    for trial in (0, 2):
+        z = b.codes.weight[trial].detach()
+        path, twin = export_extended(ext, tmp_path / f"s{trial}.safetensors", z, trial=trial)
+        eng = engine.Engine(str(path))
+        with torch.no_grad():
+            t_torch = ext.inverse(q, qd, qdd, z.expand(B, 4), fv, trial=torch.full((B,), trial)).numpy()
+        t_eng = eng.inverse_dynamics(q.numpy(), qd.numpy(), qdd.numpy(), f_v=fv.numpy())
+        assert np.abs(t_eng - t_torch).max() <= 1e-9 * np.abs(t_torch).max()
+        damping.append(twin.estimate("viscous_damping", 1))
+    assert damping[0] / damping[1] == pytest.approx(math.exp(0.8), rel=1e-9)

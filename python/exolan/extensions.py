@@ -38,11 +38,28 @@ from .data import finite_runs
 
 EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay",
                     "encoder_offset", "torque_bias", "torque_gain", "strap_compliance")
+# terms linear in their parameter, which can carry a size per subject (θ_u = θ e^{a_u})
+SIZEABLE = ("viscous_damping", "coulomb_friction", "stribeck_friction", "encoder_offset", "torque_bias",
+            "strap_compliance")
 COULOMB_EPS = 0.01   # rad/s (or m/s): the tanh smoothing of sign(q̇), the same in the world and the engine
 
 
 def _inv_softplus(y: float) -> float:
     return float(y + math.log(-math.expm1(-y)))
+
+
+# physical value (vocabulary units) → the raw parameter that `ExtendedModel` learns, per effect
+_TO_RAW = {
+    "viscous_damping": ("damping_diag", lambda d: _inv_softplus(math.sqrt(d))),     # D_jj = softplus(raw)²
+    "coulomb_friction": ("coulomb_raw", lambda f: _inv_softplus(f)),
+    "stribeck_friction": ("stribeck_fs_raw", lambda f: _inv_softplus(f)),
+    "encoder_offset": ("offset_raw", lambda o: o / 0.01),
+    "torque_bias": ("bias_raw", lambda b: b),
+    # ln k in units of 0.1: k = e^{0.1 raw} > 0 (the sign constraint), a = 1 − 1/k ≈ 0.1 raw near k = 1
+    "torque_gain": ("gain_raw", lambda k: math.log(max(k, 1e-3)) / 0.1),
+    # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
+    "strap_compliance": ("compliance_raw", lambda k: _inv_softplus(max(1.0 / k / 0.01, 1e-4))),
+}
 
 
 def _stiffness(compliance: np.ndarray) -> np.ndarray:
@@ -168,6 +185,13 @@ class ExtendedModel(nn.Module):
     trials marked 0 (an effect present in some users only: one user's loose strap, one exoskeleton unit's
     friction). The per-sample gate needs the trial index (`trial=` of `inverse`, `forward_dynamics`, ...);
     without it every term acts everywhere. Parameters are shared by the trials where the term is on.
+
+    Per-subject sizes: `init["sized"] = {effect: {joint: None or per-subject log sizes}}` with
+    `init["subject_of_trial"]` (a subject index per trial) gives every subject u its own value θ_u = θ e^{a_u}
+    of a term linear in its parameter (the frictions, the offset, the bias, the compliance; not the delay,
+    whose gate is a switch, nor the gain, whose θ_u could cross k = ∞). The log sizes are learnt with the
+    other terms and centred (Σ_u a_u = 0), so θ stays the subjects' geometric mean; e^{a_u} > 0 keeps every
+    subject's friction dissipative. `physical(trial)` gives a trial's own values (its subject's).
     """
 
     def __init__(self, base: nn.Module, n: int, effects: Iterable[tuple[str, int]] = (), dt: float = 0.005,
@@ -192,9 +216,41 @@ class ExtendedModel(nn.Module):
                 self.effects[eff].append(int(j))
         init = dict(init or {})
         gates = init.pop("gates", None) or {}
+        sized = init.pop("sized", None) or {}
+        subject_of_trial = init.pop("subject_of_trial", None)
         n = self.n
         dtype = next(base.parameters()).dtype if any(True for _ in base.parameters()) else torch.float64
         self.gated: tuple[str, ...] = ()
+        self.sized: tuple[str, ...] = ()
+        if sized:
+            if subject_of_trial is None:
+                raise ValueError("init['sized'] needs init['subject_of_trial'] (a subject index per trial)")
+            subj = torch.as_tensor(np.asarray(subject_of_trial, dtype=np.int64).reshape(-1))
+            if len(subj) == 0 or int(subj.min()) < 0:
+                raise ValueError("init['subject_of_trial'] must hold a subject index >= 0 for every trial")
+            self.register_buffer("subject_of_trial", subj, persistent=False)
+            n_subj = int(subj.max()) + 1
+        for eff, per_joint in sized.items():
+            if eff not in SIZEABLE:
+                raise ValueError(f"per-subject sizes for {eff!r}: only terms linear in their parameter have them "
+                                 f"({', '.join(SIZEABLE)})")
+            if eff not in self.effects:
+                raise ValueError(f"per-subject sizes for {eff!r}, which is not among the model's effects")
+            a = torch.zeros(n_subj, n, dtype=dtype)
+            on = torch.zeros(n, dtype=dtype)
+            for j, v in per_joint.items():
+                if int(j) not in self.effects[eff]:
+                    raise ValueError(f"per-subject sizes for {eff!r} on joint {j}, where the model has no such term")
+                on[int(j)] = 1.0
+                if v is not None:
+                    v = torch.as_tensor(np.asarray(v, dtype=np.float64).reshape(-1), dtype=dtype)
+                    if len(v) != n_subj:
+                        raise ValueError(f"per-subject sizes for {eff!r} on joint {j}: {len(v)} values for "
+                                         f"{n_subj} subjects")
+                    a[:, int(j)] = v
+            self.register_parameter(f"size_{eff}", nn.Parameter(a))
+            self.register_buffer(f"sized_{eff}", on, persistent=False)
+            self.sized += (eff,)
         for eff, per_joint in gates.items():
             if eff not in self.effects:
                 raise ValueError(f"gate for {eff!r}, which is not among the model's effects")
@@ -209,6 +265,8 @@ class ExtendedModel(nn.Module):
                 g[:, j] = torch.as_tensor(v, dtype=dtype)
             self.register_buffer(f"gate_{eff}", g, persistent=False)
             self.gated += (eff,)
+        self.switched = self.gated           # terms switched off on some trials (`gates`)
+        self.gated = tuple(dict.fromkeys(self.gated + self.sized))     # every term that needs `trial=`
 
         def mask(eff):
             m = torch.zeros(n, dtype=dtype)
@@ -226,33 +284,71 @@ class ExtendedModel(nn.Module):
             return nn.Parameter(torch.tensor([float(raw(float(x))) for x in vals], dtype=dtype))
 
         sp = _inv_softplus
-        self.damping_diag = start("viscous_damping", 0.05, lambda d: sp(math.sqrt(d)))
+        self.damping_diag = start("viscous_damping", 0.05, _TO_RAW["viscous_damping"][1])
         self.damping_off = nn.Parameter(torch.zeros(n, n, dtype=dtype))
-        self.coulomb_raw = start("coulomb_friction", 0.05, sp)
-        self.stribeck_fs_raw = start("stribeck_friction", 0.05, sp)
+        self.coulomb_raw = start("coulomb_friction", 0.05, _TO_RAW["coulomb_friction"][1])
+        self.stribeck_fs_raw = start("stribeck_friction", 0.05, _TO_RAW["stribeck_friction"][1])
         self.stribeck_vs_raw = start("stribeck_vs", 0.1, sp)
         # delay in samples, as a fraction of the maximum through a sigmoid: bounded on both sides
         def logit_delay(d):
             frac = min(max(d / self.max_delay, 1e-3), 1 - 1e-3)
             return math.log(frac / (1 - frac))
         self.delay_raw = start("actuation_delay", self.dt, logit_delay)
-        self.offset_raw = start("encoder_offset", 0.0, lambda o: o / 0.01)
-        self.bias_raw = start("torque_bias", 0.0, lambda b: b)
-        # ln k in units of 0.1: k = e^{0.1 raw} > 0 (the sign constraint), a = 1 − 1/k ≈ 0.1 raw near k = 1
-        self.gain_raw = start("torque_gain", 1.0, lambda k: math.log(max(k, 1e-3)) / 0.1)
-        # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
-        self.compliance_raw = start("strap_compliance", 1000.0, lambda k: sp(max(1.0 / k / 0.01, 1e-4)))
+        self.offset_raw = start("encoder_offset", 0.0, _TO_RAW["encoder_offset"][1])
+        self.bias_raw = start("torque_bias", 0.0, _TO_RAW["torque_bias"][1])
+        self.gain_raw = start("torque_gain", 1.0, _TO_RAW["torque_gain"][1])
+        self.compliance_raw = start("strap_compliance", 1000.0, _TO_RAW["strap_compliance"][1])
+
+    def set_value(self, effect: str, j: int, value: float) -> None:
+        """Set (effect, joint j)'s parameter to `value` in vocabulary units (strap: stiffness k). Damping sets
+        the joint's own D_jj (its Cholesky diagonal; the diagnosis keeps D diagonal)."""
+        if effect not in _TO_RAW:
+            raise ValueError(f"set_value: {effect!r} is not set this way (settable: {', '.join(_TO_RAW)})")
+        name, to_raw = _TO_RAW[effect]
+        with torch.no_grad():
+            getattr(self, name)[int(j)] = float(to_raw(float(value)))
+
+    def log_sizes(self, effect: str) -> torch.Tensor:
+        """(n_subjects, n) centred log sizes a_u of a sized term (0 on the joints without sizes)."""
+        a = getattr(self, f"size_{effect}")
+        return (a - a.mean(0, keepdim=True)) * getattr(self, f"sized_{effect}")
 
     def gate(self, effect: str, trial: torch.Tensor | None):
-        """Per-sample on/off of a term, (B, n) at the rows' trial indices, or 1 (everywhere on)."""
+        """Per-sample factor of a term, (B, n) at the rows' trial indices (its switch, times its subject's size
+        e^{a_u} where it has sizes), or 1 (everywhere on)."""
         if trial is None or effect not in self.gated:
             return 1.0
-        return getattr(self, f"gate_{effect}")[trial]
+        g = getattr(self, f"gate_{effect}")[trial] if effect in self.switched else 1.0
+        if effect in self.sized:
+            g = g * torch.exp(self.log_sizes(effect))[self.subject_of_trial[trial]]
+        return g
 
     def gate_trials(self) -> dict[str, dict[int, np.ndarray]]:
-        """The gates in `init["gates"]` form (only gated terms): carried to refits and exports."""
+        """The switches in `init["gates"]` form (only switched terms): carried to refits and exports."""
         return {eff: {j: getattr(self, f"gate_{eff}")[:, j].cpu().numpy().copy() for j in self.effects[eff]}
-                for eff in self.gated}
+                for eff in self.switched}
+
+    def size_values(self) -> dict[str, dict[int, np.ndarray]]:
+        """The centred per-subject log sizes in `init["sized"]` form (only sized joints)."""
+        with torch.no_grad():
+            return {eff: {j: self.log_sizes(eff)[:, j].cpu().numpy().copy() for j in self.effects[eff]
+                          if float(getattr(self, f"sized_{eff}")[j]) > 0} for eff in self.sized}
+
+    def subject_init(self) -> dict:
+        """The `init` entries that rebuild this model's switches and sizes (at their fitted values)."""
+        out = {}
+        if self.switched:
+            out["gates"] = self.gate_trials()
+        if self.sized:
+            out["sized"] = self.size_values()
+            out["subject_of_trial"] = self.subject_of_trial.cpu().numpy().copy()
+        return out
+
+    def trial_factor(self, effect: str, j: int, trial: int) -> float:
+        """The factor (switch × size) of (effect, joint j) on one trial."""
+        with torch.no_grad():
+            g = self.gate(effect, torch.tensor([int(trial)]))
+        return float(g[0, j]) if torch.is_tensor(g) else float(g)
 
     # -- physical parameters -----------------------------------------------------------------------
     def damping_matrix(self) -> torch.Tensor:
@@ -291,20 +387,26 @@ class ExtendedModel(nn.Module):
         """1/k in rad/(N m) (m/N for prismatic joints); 0 where no strap term is active."""
         return 0.01 * F.softplus(self.compliance_raw) * self.mask_strap_compliance
 
-    def physical(self) -> dict[str, np.ndarray]:
-        """Every parameter in the units of the effect vocabulary (DATA_LAYOUT.md), per joint."""
+    def physical(self, trial: int | None = None) -> dict[str, np.ndarray]:
+        """Every parameter in the units of the effect vocabulary (DATA_LAYOUT.md), per joint; with `trial`, the
+        values that act on that trial (a switched-off term neutral, a sized term at its subject's size)."""
         with torch.no_grad():
+            t = None if trial is None else torch.tensor([int(trial)])
+            f = lambda eff: (lambda g: g[0] if torch.is_tensor(g) else g)(self.gate(eff, t))
             fs, vs = self.stribeck()
-            c = self.compliance()
-            a = self.gain_term()
+            c = self.compliance() * f("strap_compliance")
+            a = self.gain_term() * f("torque_gain")
+            gd = torch.sqrt(torch.as_tensor(f("viscous_damping"), dtype=vs.dtype) * torch.ones_like(vs))
             return {
-                "viscous_damping": self.damping_matrix().cpu().numpy().copy(),
-                "coulomb_friction": self.coulomb().cpu().numpy().copy(),
-                "stribeck_friction": fs.cpu().numpy().copy(),
+                # diag(√g) D diag(√g): PSD, and each joint's own damping times its factor (D is diagonal in
+                # the diagnosis)
+                "viscous_damping": (gd[:, None] * self.damping_matrix() * gd[None, :]).cpu().numpy().copy(),
+                "coulomb_friction": (self.coulomb() * f("coulomb_friction")).cpu().numpy().copy(),
+                "stribeck_friction": (fs * f("stribeck_friction")).cpu().numpy().copy(),
                 "stribeck_vs": vs.cpu().numpy().copy(),
-                "actuation_delay": self.delay().cpu().numpy().copy(),
-                "encoder_offset": self.encoder_offset().cpu().numpy().copy(),
-                "torque_bias": self.torque_bias().cpu().numpy().copy(),
+                "actuation_delay": (self.delay() * f("actuation_delay")).cpu().numpy().copy(),
+                "encoder_offset": (self.encoder_offset() * f("encoder_offset")).cpu().numpy().copy(),
+                "torque_bias": (self.torque_bias() * f("torque_bias")).cpu().numpy().copy(),
                 "torque_gain": (1.0 / (1.0 - a)).cpu().numpy().copy(),
                 "strap_compliance": _stiffness(c.cpu().numpy()),
             }
@@ -446,14 +548,14 @@ class ExtendedModel(nn.Module):
         return self.base.context(x)
 
     # -- export (DESIGN.md section 4) ----------------------------------------------------------------
-    def ext_tensors(self) -> dict[str, np.ndarray]:
+    def ext_tensors(self, trial: int | None = None) -> dict[str, np.ndarray]:
         """`ext.*` float64 tensors for the weight file; only the active effects are written (absent = off).
 
         Joints without the effect get the neutral value: 0 for additive terms, k = 1 for torque_gain,
         k = +inf (compliance 0) for strap_compliance; stribeck_vs is written for every joint (unused where
-        Fs = 0).
+        Fs = 0). `trial`: the values that act on that trial (`physical`), for a user's own file.
         """
-        p = self.physical()
+        p = self.physical(trial)
         out: dict[str, np.ndarray] = {}
         f64 = lambda x: np.ascontiguousarray(np.asarray(x, dtype=np.float64))
         if "viscous_damping" in self.effects:

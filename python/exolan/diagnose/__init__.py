@@ -82,6 +82,9 @@ def _subject_terms(ext, flat) -> str:
         for j, on in per_joint.items():
             users = sorted({flat.trial_meta[i]["subject"] for i in np.flatnonzero(on > 0)})
             parts.append(f"{eff}:{flat.joints[j]} -> {'+'.join(users)}")
+    for eff, per_joint in ext.size_values().items():
+        for j in per_joint:
+            parts.append(f"{eff}:{flat.joints[j]} -> every user at their own size")
     return "; ".join(parts)
 
 

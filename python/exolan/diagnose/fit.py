@@ -796,20 +796,26 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
                     meta: dict | None = None, trial: int | None = None):
     """Export base (at context z) + `ext.*` tensors through `exolan.export` (the Rust engine's format).
 
-    `trial`: a subject-specific (gated) term is written only where it acts on that trial (the engine has no
-    gates: one file per user); without it every term is written."""
+    `trial`: a subject-specific term is written as it acts on that trial (the engine has neither switches nor
+    sizes: one file per user): a term switched off there is left out, a sized one takes its subject's value;
+    without it every term is written at its shared value."""
     from ..export import export
 
     exo = to_exo_model(ext.base, z, joint_names)
-    gates = ext.gate_trials()
-    on = lambda e, j: trial is None or e not in gates or gates[e][j][trial] > 0
-    eff = [(e, j) for e, js in ext.effects.items() for j in js if on(e, j)]
+    factor = lambda e, j: 1.0 if trial is None else ext.trial_factor(e, j, trial)
+    eff = [(e, j) for e, js in ext.effects.items() for j in js if factor(e, j) > 0]
     twin = ExtendedModel(exo, ext.n, eff, dt=ext.dt, max_delay=ext.max_delay, coulomb_eps=ext.coulomb_eps,
                          coupled_damping=ext.coupled_damping).to(torch.float64)
     with torch.no_grad():
+        params = dict(twin.named_parameters())
         for name, p in ext.named_parameters():
-            if not name.startswith("base."):
-                dict(twin.named_parameters())[name].copy_(p.detach().to(torch.float64))
+            if not name.startswith("base.") and name in params:     # (not the sizes: the twin has none)
+                params[name].copy_(p.detach().to(torch.float64))
+    own = ext.physical(trial) if trial is not None else None
+    for e, j in eff:            # a sized term at this trial's subject's value
+        if e in ext.sized and abs(factor(e, j) - 1.0) > 0:
+            v = own[e][j, j] if e == "viscous_damping" else own[e][j]
+            twin.set_value(e, j, float(v))
     md = {"dt": repr(float(dt if dt is not None else ext.dt))}
     if getattr(ext.base, "body_load", None) is not None:
         md["omitted"] = ("the diagnosis base's gravity scaling by the other leg's insole force (the engine has one "

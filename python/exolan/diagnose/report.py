@@ -203,7 +203,9 @@ Where the data hold several subjects, a candidate whose post-hoc correction on t
 some subjects only (their θ clears a Bonferroni z over the subjects, the others' does not, Cochran's Q p < 0.05)
 is fitted as a term of those subjects only (switched off on the other subjects' trials) where that term beats one
 shared term on held-out data beyond the refit noise (a shared effect that the base absorbed more in some subjects
-looks the same post hoc), and judged by the same rules."""
+looks the same post hoc), and judged by the same rules. Where the subjects' post-hoc θ differ and the term is
+linear in its parameter, the term is also fitted in every subject at their own size (θ_u = θ e^(a_u), the log
+sizes centred), taken where it beats the shared term, and the switched one, beyond the refit noise."""
 
 
 def write(out: Path, res: dict) -> dict:
@@ -290,6 +292,18 @@ def _evidence_lines(f: dict) -> list[str]:
                    f"the training rows (HAC SE) {th}; Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, "
                    f"p {_fmt(het.get('p'), 2)}; it beats one shared term by {_fmt(adv.get('gain'), 3)} "
                    f"CI {_fmt(adv.get('ci'), 3)}")
+    if sf.get("kind") == "sizes":
+        het = sf.get("heterogeneity") or {}
+        adv = sf.get("advantage_over_shared") or {}
+        over = sf.get("advantage_over_switch")
+        by = f.get("estimate_by_subject") or {}
+        out.append(f"  - every subject at their own size (θ_u = θ e^(a_u), θ the subjects' geometric mean): "
+                   + ", ".join(f"{u} {_fmt(v['estimate'])} CI {_fmt(v['ci'], 3)}" for u, v in by.items())
+                   + f"; post-hoc θ by subject on the training rows {by_subject(sf)}, Cochran's Q "
+                   f"{_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}; it beats one shared "
+                   f"term by {_fmt(adv.get('gain'), 3)} CI {_fmt(adv.get('ci'), 3)}"
+                   + (f" and the term of the subjects whose post-hoc θ clears alone by {_fmt(over.get('gain'), 3)} "
+                      f"CI {_fmt(over.get('ci'), 3)}" if over else ""))
     nt = f.get("subject_form_not_taken") or {}
     if nt.get("subjects"):
         th = by_subject(nt)
@@ -297,6 +311,10 @@ def _evidence_lines(f: dict) -> list[str]:
         out.append(f"  - one term for every subject: the post-hoc θ by subject ({th}) asked for a term of "
                    f"{', '.join(nt['subjects'])} only, which did not beat the shared one ({_fmt(adv.get('gain'), 3)} "
                    f"CI {_fmt(adv.get('ci'), 3)}): the base absorbs a shared effect more in some subjects than others")
+    if nt.get("sizes_advantage_over_shared"):
+        adv = nt["sizes_advantage_over_shared"]
+        out.append(f"  - one size for every subject: a size per subject (post-hoc θ {by_subject(nt)}) did not beat the "
+                   f"shared term ({_fmt(adv.get('gain'), 3)} CI {_fmt(adv.get('ci'), 3)})")
     sg = f.get("subject_gains") or {}
     if sg:
         out.append("  - gain by subject: " + ", ".join(f"{k} {_fmt(v['gain'], 3)} {_fmt(v['ci'], 3)}" for k, v in sg.items()))
@@ -371,8 +389,11 @@ def markdown(rep: dict) -> str:
         for f in findings:
             unit = "" if f["unit"] == "1" else f" {f['unit']}"      # a gain is a pure number
             who = f" of **{', '.join(f['subjects'])}** only" if (f.get("subject_form") or {}).get("subjects") else ""
+            sized = f.get("estimate_by_subject")
+            size_text = (" (geometric mean of the subjects' own sizes: " + ", ".join(
+                f"{u} {_fmt(v['estimate'])}{unit} CI {_fmt(v['ci'], 3)}" for u, v in sized.items()) + ")") if sized else ""
             L.append(f"- **{f['effect']}** on **{f['joint']}**{who}: {_fmt(f['estimate'])}{unit} "
-                     f"(95% CI {_fmt(f['ci'], 3)}), held-out gain {_fmt(f['heldout_gain'], 3)} ({U})² "
+                     f"(95% CI {_fmt(f['ci'], 3)}){size_text}, held-out gain {_fmt(f['heldout_gain'], 3)} ({U})² "
                      f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
             if f.get("ci_identification") is not None:
                 how = f.get("warm_start", "the reference refitted with this term alone")
@@ -430,7 +451,8 @@ def markdown(rep: dict) -> str:
     L.append("| effect | joint | subjects | status | estimate | 95% CI | unit | held-out gain [CI] | reason |")
     L.append("|---|---|---|---|---|---|---|---|---|")
     for e in findings + rep["rejected"]:
-        who = ", ".join(e["subjects"]) if (e.get("subject_form") or {}).get("subjects") else "all"
+        sf = e.get("subject_form") or {}
+        who = ", ".join(e["subjects"]) if sf.get("subjects") else ("all, own sizes" if sf.get("kind") == "sizes" else "all")
         L.append(f"| {e['effect']} | {e['joint']} | {who} | {e['status']} | {_fmt(e.get('estimate'))} | {_fmt(e.get('ci'), 3)} | "
                  f"{e.get('unit', '')} | {_fmt(e.get('heldout_gain'), 3)} {_fmt(e.get('heldout_gain_ci'), 3)} | "
                  f"{e.get('reason', '')} |")
