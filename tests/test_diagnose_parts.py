@@ -720,47 +720,76 @@ def test_the_injected_limit_scales_the_injections_gain_as_theta_squared():
     assert one < both < math.hypot(_injected_limit(1e-4, 1e-5, 0.0, 0.5), _injected_limit(1e-4, 0.0, 1e-5, 0.5))
 
 
-def test_the_gains_limit_by_injection_writes_a_known_gain_into_data_cleaned_of_the_own_variations_share(
+def test_the_limits_by_injection_write_a_known_gain_and_delay_into_data_cleaned_of_the_own_variations_share(
         small_world, monkeypatch):
-    """Mechanics of `gain_injection` (fits made no-ops): the base is fitted on the recorded joint torque less the
-    share of the controller's own variation o that the reference leaves (0.3 o here), plus θ0 τ_e with θ0 twice
-    the computed limit; a limit far from θ0 is measured again by a second injection at 1.2 times it."""
+    """Mechanics of `limits_by_injection` (fits made no-ops): the base is fitted on the recorded joint torque less
+    the share of the controller's own variation o (and of its rate ȯ) that the reference leaves (0.3 o + 0.002 ȯ
+    here), plus θ0 τ_e (a gain) and τ_e(t) − τ_e(t − d0) (a delay), θ0 and d0 twice the computed limits; a limit
+    far from its injection is measured again by a second injection at 1.2 times it."""
+    from exolan.data import savgol_derivative
     from exolan.diagnose import procedure as P
 
     flat = prepare(P.load_trials(small_world))
     held = flat.index("held")
+    split = lambda x: torch.split(x, [int(n) for n in flat.lengths])
     own = {j: flat.tau_e[:, j] - P.exo_copy(flat, j).tau_e[:, j] for j in range(2)}
-    monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - 0.3 * torch.stack([own[0], own[1]], 1)[idx])
+    rate = {j: torch.as_tensor(np.concatenate([savgol_derivative(seg.numpy().astype(np.float64), flat.dt)
+                                               for seg in split(own[j])]), dtype=flat.tau.dtype) for j in range(2)}
+    left = torch.stack([0.3 * own[j] + 0.002 * rate[j] for j in range(2)], 1)
+    monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - left[idx])
     fitted = []
     monkeypatch.setattr(P, "train", lambda model, f, *a, **k: fitted.append(f.tau.clone()))
     monkeypatch.setattr(P, "_refit", lambda *a, **k: None)
+    monkeypatch.setattr(P, "screen", lambda *a, **k: {})       # the terms start at their defaults (delay: one sample)
     s = Settings(n_boot=100, hidden=8, verbose=False)
     base = make_base(flat, hidden=8)
-    analytic = {"hip": dict(theta_limit=0.15), "knee": dict(theta_limit=0.3)}
+    analytic = {"torque_gain": {"hip": dict(theta_limit=0.15), "knee": dict(theta_limit=0.3)},
+                "actuation_delay": {"knee": dict(d_limit=0.012)}}
 
-    def limits(scale):
+    def delayed(x, d):      # x(t − d) per trial, linear interpolation, held before the start
+        out = []
+        for seg in split(x):
+            t = np.arange(len(seg), dtype=np.float64)
+            out.append(np.interp(t - d / flat.dt, t, seg.numpy().astype(np.float64)))
+        return torch.as_tensor(np.concatenate(out), dtype=x.dtype)
+
+    def limits(scale, **kw):
         fitted.clear()
         real = P._injected_limit
         monkeypatch.setattr(P, "_injected_limit", lambda g0, se0, sr, th0: scale(th0))
-        out = P.gain_injection(flat, s, base, base, held, 1e-6, analytic)
+        out = P.limits_by_injection(flat, s, base, base, held, 1e-6, analytic, **kw)
         monkeypatch.setattr(P, "_injected_limit", real)
         return out
 
-    out = limits(lambda th0: th0)            # the limit lies at the injection: one fit
-    assert len(fitted) == 1 and set(out) == {"hip", "knee"}
-    for j, th0 in ((0, 0.3), (1, 0.6)):
-        expect = flat.tau[:, j] - 0.3 * own[j] + th0 * flat.tau_e[:, j]
-        assert torch.allclose(fitted[0][:, j], expect, atol=1e-3 * float(flat.tau[:, j].abs().max()))
-        v = out[flat.joints[j]]
-        assert v["injected_k"] == pytest.approx(1 / (1 - th0)) and v["k_above"] == pytest.approx(1 / (1 - th0))
-    out = limits(lambda th0: th0 / 4)        # far below it: measured again at 1.2 times the first answer
+    tol = lambda j: 2e-3 * float(flat.tau[:, j].abs().max())
+    out = limits(lambda th0: th0)            # every limit lies at its injection: one fit
+    assert len(fitted) == 1 and set(out["torque_gain"]) == {"hip", "knee"} and set(out["actuation_delay"]) == {"knee"}
+    te = flat.tau_e
+    expect_hip = flat.tau[:, 0] - 0.3 * own[0] + 0.3 * te[:, 0]
+    expect_knee = flat.tau[:, 1] - left[:, 1] + 0.6 * te[:, 1] + te[:, 1] - delayed(te[:, 1], 0.024)
+    assert torch.allclose(fitted[0][:, 0], expect_hip, atol=tol(0))
+    assert torch.allclose(fitted[0][:, 1], expect_knee, atol=tol(1))
+    assert out["torque_gain"]["knee"]["injected_k"] == pytest.approx(1 / 0.4)
+    assert out["torque_gain"]["knee"]["k_above"] == pytest.approx(1 / 0.4)
+    d = out["actuation_delay"]["knee"]
+    # scaled from the larger of the injected and the recovered delay (a delay already in the data adds to it)
+    assert d["injected_d"] == pytest.approx(0.024) and d["d_limit"] == pytest.approx(max(0.024, d["recovered_d"]))
+    assert "recovered_d" in d and "passes_at_injection" in d and "limit" not in d
+    out = limits(lambda th0: th0 / 4)        # far below: measured again at 1.2 times the first answer
     assert len(fitted) == 2
+    d1 = max(1.2 * 0.024 / 4, 2 * flat.dt)   # at least two samples
     for j, th0, th1 in ((0, 0.3, 0.1), (1, 0.6, 0.18)):       # 1.2 θ0 / 4, at least 0.1
-        assert torch.allclose(fitted[1][:, j] - fitted[0][:, j], (th1 - th0) * flat.tau_e[:, j], atol=1e-3)
-        v = out[flat.joints[j]]
+        assert torch.allclose(fitted[1][:, j] - fitted[0][:, j], (th1 - th0) * te[:, j]
+                              + (j == 1) * (delayed(te[:, 1], 0.024) - delayed(te[:, 1], d1)), atol=tol(j))
+        v = out["torque_gain"][flat.joints[j]]
         assert v["injected_k"] == pytest.approx(1 / (1 - th1)) and v["first_injection"]["injected_k"] == \
             pytest.approx(1 / (1 - th0))
-    assert P.gain_injection(flat, s, None, base, held, 1e-6, analytic) == {}     # a given run: computed limits
+    assert out["actuation_delay"]["knee"]["injected_d"] == pytest.approx(d1)
+    # the gain alone: no delay written, and the delay's limit left as computed
+    out = limits(lambda th0: th0, delay=False)
+    assert out["actuation_delay"] == {} and torch.allclose(fitted[0][:, 0], expect_hip, atol=tol(0))
+    assert P.limits_by_injection(flat, s, None, base, held, 1e-6, analytic) == {"torque_gain": {},
+                                                                                  "actuation_delay": {}}
 
 
 def test_the_delays_detection_limit_follows_the_rate_of_the_controllers_own_variation(monkeypatch):
@@ -1129,8 +1158,9 @@ def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch):
     monkeypatch.setattr(D, "diagnose", lambda data, model=None, out=None, quick=False, **kw: seen.update(kw) or
                         {"findings": []})
     assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--computed-gain-limit", "--unweighted",
-                 "--no-adapt-model", "--no-lim-cop", "--no-pelvis-surge", "--pelvis-tilt", "--seed", "3"]) == 0
-    assert seen == dict(inject_gain=False, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
+                 "--measured-delay-limit", "--no-adapt-model", "--no-lim-cop", "--no-pelvis-surge", "--pelvis-tilt",
+                 "--seed", "3"]) == 0
+    assert seen == dict(inject_gain=False, inject_delay=True, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
                         pelvis_tilt=True, seed=3)
     assert set(seen) <= {f.name for f in dataclasses.fields(D.Settings)}
 
@@ -1154,3 +1184,15 @@ def test_the_reports_limits_table_says_none_where_no_gain_shows_and_lists_each_i
     assert "no gain up to that size shows" in hip_line and "does not pass" in hip_line
     knee_line = next(x for x in text.splitlines() if x.startswith("- knee"))
     assert "a gain of 1.6 written into the data" in knee_line and "no gain up to" not in knee_line
+    # a measured delay limit: its line beside the gain's; "none" where the injected delay did not show
+    dinj = dict(method="injection", injected_d=0.03, recovered_d=0.026, injected_gain=4e-5,
+                injected_gain_ci=[1e-5, 7e-5], passes_at_injection=True, computed=dict(d_limit=0.016))
+    text = "\n".join(_limit_lines({"torque_gain": gain, "actuation_delay": {
+        "hip": dict(sizes, d_limit=0.021, **dinj),
+        "knee": dict(sizes, d_limit=float("inf"), **dict(dinj, injected_gain=-1e-5, passes_at_injection=False))}}))
+    assert "| hip | 5 | 94 % | 1.3 | none | none | 21 |" in text and "| knee | 5 | 94 % | 1.3 | 0.8 | 1.25 | none |" in text
+    assert "The delay's limit is measured the same way" in text
+    lines = [x for x in text.splitlines() if "ms written into the data" in x]
+    assert len(lines) == 2 and "a delay of 30 ms written into the data was recovered as 26 ms" in lines[0]
+    assert "computed at the base's misfit the limit would be 16 ms" in lines[0]
+    assert "no delay up to that size shows" in lines[1] and "does not pass rules 1 and 2" in lines[1]

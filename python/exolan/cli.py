@@ -130,6 +130,9 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--computed-gain-limit", action="store_true",
                    help="report the exo torque gain's detection limit as computed at the base's misfit (optimistic) "
                         "instead of measuring it by writing a known gain into the data (saves one or two base fits)")
+    p.add_argument("--measured-delay-limit", action="store_true",
+                   help="also measure the actuation delay's detection limit by writing a known delay into the data "
+                        "(in the gain's injection fit; confounded where the data hold a delay already)")
 
     p = sub.add_parser("pipeline", help="the main job: simulate, train, evaluate, export, rollout, diagnose, report")
     p.add_argument("--out", default="out/main")

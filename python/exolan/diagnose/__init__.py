@@ -150,6 +150,8 @@ def cli_diagnose(args) -> int:
         settings["adapt_model"] = False
     if getattr(args, "computed_gain_limit", False):
         settings["inject_gain"] = False
+    if getattr(args, "measured_delay_limit", False):
+        settings["inject_delay"] = True
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:
