@@ -1365,9 +1365,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     entry["subject_form_not_taken"] = nt
                     what = {"switch": f"a term of {', '.join(form.get('subjects', []))} only",
                             "sizes": "a size per subject"}
+                    forms = [f"{what[k]} ({_gci(tried[k][0]['advantage_over_shared'])})" for k in kinds]
                     _log(s, f"{effect:18s} {name:9s} kept shared: post-hoc θ by subject {post}; "
-                            + " and ".join(f"{what[k]} ({_gci(tried[k][0]['advantage_over_shared'])})" for k in kinds)
-                            + " does not beat the shared term beyond the refit noise")
+                            + (f"neither {forms[0]} nor {forms[1]} beats" if len(forms) == 2 else
+                               f"{forms[0]} does not beat") + " the shared term beyond the refit noise")
             g = _gain(e_ref, e, s)                  # the decision's gain
             gu = _gain(e_ref_user, e_user, s)       # the user's
             pci = _param_ci(ext, flat, effect, j)
