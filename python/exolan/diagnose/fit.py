@@ -811,11 +811,11 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
         for name, p in ext.named_parameters():
             if not name.startswith("base.") and name in params:     # (not the sizes: the twin has none)
                 params[name].copy_(p.detach().to(torch.float64))
-    own = ext.physical(trial) if trial is not None else None
-    for e, j in eff:            # a sized term at this trial's subject's value
-        if e in ext.sized and abs(factor(e, j) - 1.0) > 0:
-            v = own[e][j, j] if e == "viscous_damping" else own[e][j]
-            twin.set_value(e, j, float(v))
+    if trial is not None and ext.sized:
+        own = ext.physical(trial)
+        for e, j in eff:        # a sized term at this trial's subject's value
+            if e in ext.sized:
+                twin.set_value(e, j, float(own[e][j, j] if e == "viscous_damping" else own[e][j]))
     md = {"dt": repr(float(dt if dt is not None else ext.dt))}
     if getattr(ext.base, "body_load", None) is not None:
         md["omitted"] = ("the diagnosis base's gravity scaling by the other leg's insole force (the engine has one "

@@ -251,6 +251,14 @@ def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndar
     return detection_limits(flat, model, held, w_held, sigma_r, s)["actuation_delay"]
 
 
+def _rate_per_trial(x: np.ndarray, flat: Flat) -> np.ndarray:
+    """ẋ of a flat series (float64), trial by trial, by the data's Savitzky-Golay derivative
+    (`data.savgol_derivative`): a delay shifts the recorded torque's noise too, which identifies nothing (it
+    cancels in τ_rec), while a central difference turns that white noise into a large rate and the delay's limit
+    into an optimistic one."""
+    return np.concatenate([savgol_derivative(seg, flat.dt) for seg in np.split(x, np.cumsum(flat.lengths)[:-1])])
+
+
 def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
                      s: Settings) -> dict:
     """`{"torque_gain": gain_detection_limit, "actuation_delay": delay_detection_limit}` in one pass: the model's
@@ -284,11 +292,7 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
             continue
         own_all = te_all - exo_copy(flat, j).tau_e[:, j].numpy().astype(np.float64)
         own = own_all[h]
-        # ȯ per trial, the data's Savitzky-Golay derivative (`data.savgol_derivative`): a delay shifts the
-        # recorded torque's noise too, which identifies nothing (it cancels in τ_rec), while a central difference
-        # turns that white noise into a large rate and the limit into an optimistic one
-        rate = np.nan_to_num(np.concatenate([savgol_derivative(seg, flat.dt)
-                                             for seg in np.split(own_all, np.cumsum(flat.lengths)[:-1])])[h])
+        rate = np.nan_to_num(_rate_per_trial(own_all, flat)[h])
         w = w_held[:, j] if w_held is not None else np.ones(len(te))
         var_te = float(np.var(te))
         sizes = dict(copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
@@ -389,9 +393,8 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         # the share of the own variation (and of its rate) that the reference leaves in its training residual
         # (least squares) comes out first, as the computed limit does: what is left is absorbed by the base anyway
         o = flat.tau_e[:, j] - exo_copy(flat, j).tau_e[:, j]
-        cols = [o] + ([torch.as_tensor(np.concatenate([savgol_derivative(seg.numpy().astype(np.float64), flat.dt)
-                                                       for seg in torch.split(o, [int(n) for n in flat.lengths])]),
-                                       dtype=o.dtype)] if j in dj else [])
+        cols = [o] + ([torch.as_tensor(_rate_per_trial(o.numpy().astype(np.float64), flat), dtype=o.dtype)]
+                      if j in dj else [])
         X = torch.stack(cols, 1).double()
         beta = torch.linalg.lstsq(X[train_rows], resid[:, j:j + 1].double()).solution[:, 0]
         cleaned[:, j] = flat.tau[:, j] - (X @ beta).to(flat.tau.dtype)
@@ -1335,16 +1338,18 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     m_user, m_e = held_errors(m)
                     adv = _gain(e, m_e, s)
                     f["advantage_over_shared"] = dict(gain=adv["gain"], ci=adv["ci"], scale=scale)
-                    tried[kind] = (f, m, m_user, m_e,
-                                   _above_noise(adv, sigma_r) and _user_improves(e_user, m_user))
-                take = [k for k in kinds if tried[k][4]]
+                    tried[kind] = dict(form=f, model=m, user=m_user, err=m_e,
+                                       beats=_above_noise(adv, sigma_r) and _user_improves(e_user, m_user))
+                take = [k for k in kinds if tried[k]["beats"]]
                 if len(take) == 2:
-                    adv = _gain(tried["switch"][3], tried["sizes"][3], s)
-                    tried["sizes"][0]["advantage_over_switch"] = dict(gain=adv["gain"], ci=adv["ci"], scale=scale)
-                    take = ["sizes"] if (_above_noise(adv, sigma_r) and
-                                         _user_improves(tried["switch"][2], tried["sizes"][2])) else ["switch"]
+                    sw, sz = tried["switch"], tried["sizes"]
+                    adv = _gain(sw["err"], sz["err"], s)
+                    sz["form"]["advantage_over_switch"] = dict(gain=adv["gain"], ci=adv["ci"], scale=scale)
+                    take = ["sizes"] if (_above_noise(adv, sigma_r) and _user_improves(sw["user"], sz["user"])) \
+                        else ["switch"]
                 if take:
-                    f, ext, e_user, e, _ = tried[take[0]]
+                    t = tried[take[0]]
+                    f, ext, e_user, e = t["form"], t["model"], t["user"], t["err"]
                     entry.update(_subject_form=f)
                     if f["kind"] == "switch":
                         entry.update(subjects=f["subjects"])
@@ -1359,13 +1364,13 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 else:
                     nt = {k: v for k, v in form.items() if k not in ("trials", "subject_of_trial")}
                     if "switch" in tried:
-                        nt["advantage_over_shared"] = tried["switch"][0]["advantage_over_shared"]
+                        nt["advantage_over_shared"] = tried["switch"]["form"]["advantage_over_shared"]
                     if "sizes" in tried:
-                        nt["sizes_advantage_over_shared"] = tried["sizes"][0]["advantage_over_shared"]
+                        nt["sizes_advantage_over_shared"] = tried["sizes"]["form"]["advantage_over_shared"]
                     entry["subject_form_not_taken"] = nt
                     what = {"switch": f"a term of {', '.join(form.get('subjects', []))} only",
                             "sizes": "a size per subject"}
-                    forms = [f"{what[k]} ({_gci(tried[k][0]['advantage_over_shared'])})" for k in kinds]
+                    forms = [f"{what[k]} ({_gci(tried[k]['form']['advantage_over_shared'])})" for k in kinds]
                     _log(s, f"{effect:18s} {name:9s} kept shared: post-hoc θ by subject {post}; "
                             + (f"neither {forms[0]} nor {forms[1]} beats" if len(forms) == 2 else
                                f"{forms[0]} does not beat") + " the shared term beyond the refit noise")

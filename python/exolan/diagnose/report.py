@@ -300,7 +300,8 @@ def _evidence_lines(f: dict) -> list[str]:
         out.append(f"  - every subject at their own size (θ_u = θ e^(a_u), θ the subjects' geometric mean): "
                    + ", ".join(f"{u} {_fmt(v['estimate'])} CI {_fmt(v['ci'], 3)}" for u, v in by.items())
                    + " (HAC on each subject's training rows, conditional on the networks: narrower than the shared "
-                   f"estimate's interval, which adds the spread to the warm start); post-hoc θ by subject on the training rows {by_subject(sf)}, Cochran's Q "
+                   "estimate's interval, which adds the spread to the warm start); post-hoc θ by subject on the "
+                   f"training rows {by_subject(sf)}, Cochran's Q "
                    f"{_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}; it beats one shared "
                    f"term by {_fmt(adv.get('gain'), 3)} CI {_fmt(adv.get('ci'), 3)}"
                    + (f" and the term of the subjects whose post-hoc θ clears alone by {_fmt(over.get('gain'), 3)} "
