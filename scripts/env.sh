@@ -20,6 +20,13 @@ hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -c1-16; }
 deps_stamp="$VENV/.exolan-deps"
 deps_hash="$(hash_of pyproject.toml)"
 if [ "$(cat "$deps_stamp" 2>/dev/null)" != "$deps_hash" ]; then
+    # torch's CUDA build with its nvidia packages takes ~6 GB in .venv (more while pip unpacks and caches it):
+    # say so up front rather than leave pip's "No space left on device" halfway through the install
+    free_kb="$(df -Pk "$ROOT" | awk 'NR==2 {print $4}')"
+    if [ -n "$free_kb" ] && [ "$free_kb" -lt $((8 * 1024 * 1024)) ]; then
+        echo "[exolan] warning: $((free_kb / 1024)) MiB free on the disk of $ROOT; the Python dependencies need" \
+             "about 8 GiB while they install (6 GiB after). Free some space if pip fails." >&2
+    fi
     echo "[exolan] installing pinned Python dependencies (torch included; pip's cache serves re-runs)"
     python -m pip install -q --upgrade pip
     reqs="$(python - <<'PYEOF'
