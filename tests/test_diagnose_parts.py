@@ -1090,6 +1090,86 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(mo
     assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
 
 
+def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path, monkeypatch):
+    """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
+    term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
+    and compared there; the sizes start equal. The form taken is the extended model (no third fit from scratch)
+    and the report says how the forms were compared. Rules forced open: the sizes win; then the switch wins
+    where the sizes' fit from scratch does not beat it."""
+    import exolan.diagnose.procedure as P
+    from exolan.diagnose import diagnose
+    from exolan.diagnose.synthetic import linear_drive
+
+    trials = []
+    for subj, visc, seed in (("S01", 2.0, 5), ("S02", 8.0, 6)):
+        tr, _ = linear_drive(n_trials=2, seconds=4.0, seed=seed, viscous=visc)
+        for k, t in enumerate(tr):
+            t.subject, t.name = subj, f"{subj.lower()}_drive_{k}"
+        trials += tr
+
+    def both_forms(model, flat, effect, j, sc):     # the proposal: S02 alone, or every subject at their size
+        users = ["S01", "S02"]
+        return dict(theta_by_subject={u: dict(theta=1.0 + i, se=0.1) for i, u in enumerate(users)},
+                    heterogeneity=dict(Q=50.0, df=1, p=1e-12), z_crit=2.24, subjects=["S02"],
+                    trials=np.array([float(m["subject"] == "S02") for m in flat.trial_meta]), users=users,
+                    subject_of_trial=np.array([users.index(m["subject"]) for m in flat.trial_meta]))
+
+    monkeypatch.setattr(P, "subject_form", both_forms)
+    monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
+    spread = P._spread
+    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
+    fits = []
+    real_fresh = P._fresh_fit
+
+    def recorded(flat, s, effects, init, start, confused=None):
+        m = real_fresh(flat, s, effects, init, start, confused=confused)
+        fits.append((init, m))
+        return m
+
+    monkeypatch.setattr(P, "_fresh_fit", recorded)
+
+    def run(out, sizes_win: bool):
+        fits.clear()
+        n = {"fresh": 0}
+        real_gain = P._gain
+
+        def gain(e_ref, e_new, s, seed=0, alpha=0.05):
+            g = real_gain(e_ref, e_new, s, seed=seed, alpha=alpha)
+            # the comparison of the two fits from scratch: sizes against switch
+            if len(fits) == 2 and n["fresh"] == 0:
+                n["fresh"] += 1
+                g = dict(g, forced=True) if sizes_win else dict(g, draws=None)
+            return g
+
+        monkeypatch.setattr(P, "_gain", gain)
+        monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: g.get("draws", 0) is not None)
+        return diagnose(trials, out=out, quick=True, hidden=8, steps_base=150, steps_refit=60,
+                        effects=("viscous_damping",), verbose=False)
+
+    rep = run(tmp_path / "a", sizes_win=True)
+    assert len(fits) == 2                       # the two forms; the taken one is the extended model
+    sw_init, sz_init = fits[0][0], fits[1][0]
+    assert "gates" in sw_init and "sized" not in sw_init
+    assert sz_init["sized"]["viscous_damping"][0] is None and "gates" not in sz_init
+    (f,) = rep["findings"]
+    assert f["subject_form"]["kind"] == "sizes"
+    assert f["subject_form"]["advantage_over_switch"]["fitted"] == "from scratch"
+    assert len(f["subject_form"]["log_sizes_from_scratch"]) == 2
+    assert rep["extended"]["model"] == "fitted from scratch with the terms"
+    assert rep["extended"]["parameters"]["viscous_damping:x"] == fits[1][1].estimate("viscous_damping", 0)
+    assert set(f["estimate_by_subject"]) == {"S01", "S02"}
+    assert "(both fitted from scratch)" in (tmp_path / "a" / "diagnosis.md").read_text()
+
+    rep = run(tmp_path / "b", sizes_win=False)
+    assert len(fits) == 2
+    (f,) = rep["findings"]
+    assert f["subject_form"]["kind"] == "switch" and f["subjects"] == ["S02"]
+    over = f["subject_form"]["sizes_advantage_over_switch"]
+    assert over["fitted"] == "from scratch" and len(over["log_sizes"]) == 2
+    assert rep["extended"]["parameters"]["viscous_damping:x"] == fits[0][1].estimate("viscous_damping", 0)
+    assert "did not beat this term beyond the refit noise" in (tmp_path / "b" / "diagnosis.md").read_text()
+
+
 def test_a_sized_terms_value_by_subject_is_its_subjects_own():
     """`_param_by_subject`: θ_u = θ e^{a_u} of a sized term for each subject, with an interval from that subject's
     training rows that holds it when the recorded torque is the model's own (plus noise); a stiffness is

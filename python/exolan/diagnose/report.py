@@ -205,7 +205,9 @@ is fitted as a term of those subjects only (switched off on the other subjects' 
 shared term on held-out data beyond the refit noise (a shared effect that the base absorbed more in some subjects
 looks the same post hoc), and judged by the same rules. Where the subjects' post-hoc θ differ and the term is
 linear in its parameter, the term is also fitted in every subject at their own size (θ_u = θ e^(a_u), the log
-sizes centred), taken where it beats the shared term, and the switched one, beyond the refit noise."""
+sizes centred), taken where it beats the shared term, and the switched one, beyond the refit noise (the sizes and
+the switched term compared fitted from scratch where the base was fitted here: a warm start keeps what the base
+absorbed of a smaller size)."""
 
 
 def write(out: Path, res: dict) -> dict:
@@ -292,6 +294,13 @@ def _evidence_lines(f: dict) -> list[str]:
                    f"the training rows (HAC SE) {th}; Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, "
                    f"p {_fmt(het.get('p'), 2)}; it beats one shared term by {_fmt(adv.get('gain'), 3)} "
                    f"CI {_fmt(adv.get('ci'), 3)}")
+        over = sf.get("sizes_advantage_over_switch")
+        if over:
+            sizes = (" (" + ", ".join(f"{u} ×{_fmt(math.exp(a), 3)}" for u, a in zip(over["users"], over["log_sizes"]))
+                     + " of their geometric mean)") if over.get("log_sizes") is not None else ""
+            out.append(f"  - every subject at their own size{sizes} did not beat this term beyond the refit noise: "
+                       f"{_fmt(over.get('gain'), 3)} CI {_fmt(over.get('ci'), 3)} (both fitted "
+                       f"{over.get('fitted', 'warm start')})")
     if sf.get("kind") == "sizes":
         het = sf.get("heterogeneity") or {}
         adv = sf.get("advantage_over_shared") or {}
@@ -305,7 +314,7 @@ def _evidence_lines(f: dict) -> list[str]:
                    f"{_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}; it beats one shared "
                    f"term by {_fmt(adv.get('gain'), 3)} CI {_fmt(adv.get('ci'), 3)}"
                    + (f" and the term of the subjects whose post-hoc θ clears alone by {_fmt(over.get('gain'), 3)} "
-                      f"CI {_fmt(over.get('ci'), 3)}" if over else ""))
+                      f"CI {_fmt(over.get('ci'), 3)} (both fitted {over.get('fitted', 'warm start')})" if over else ""))
     nt = f.get("subject_form_not_taken") or {}
     if nt.get("subjects"):
         th = by_subject(nt)
