@@ -895,7 +895,7 @@ def test_a_given_runs_base_starts_as_the_run_and_learns_the_centre_of_pressure_p
     """`--model RUN`: the pooled base predicts exactly what the run predicts until the data move it; its added
     insole correction ΔB(q, x_cop) f_v then takes up a contact torque that depends on the centre of pressure
     nonlinearly, which the run's B(q, z) and the linear CoP lever cannot (the lever alone is the control)."""
-    from exolan.diagnose.fit import PooledContext, predict, sq_errors
+    from exolan.diagnose.fit import PooledContext, inertia_of, predict, sq_errors
     from exolan.models import build_model
 
     torch.manual_seed(0)
@@ -922,6 +922,12 @@ def test_a_given_runs_base_starts_as_the_run_and_learns_the_centre_of_pressure_p
         with torch.no_grad():
             own = run.inverse(flat.q[idx], flat.qd[idx], flat.qdd[idx], None, flat.f_v[idx])
         torch.testing.assert_close(start, own)
+        # the inertia the fits' acceleration term reuses is the run's own H(q, z)
+        tau_h, H = base.inverse_inertia(flat.q[idx], flat.qd[idx], flat.qdd[idx], base.z_of(flat.trial[idx]),
+                                        flat.forces(idx))
+        torch.testing.assert_close(tau_h, base.inverse(flat.q[idx], flat.qd[idx], flat.qdd[idx],
+                                                       base.z_of(flat.trial[idx]), flat.forces(idx)))
+        torch.testing.assert_close(H, inertia_of(base, flat.q[idx], base.z_of(flat.trial[idx])))
         train(base, flat, 600, lr=3e-3, batch=1024, seed=0, w_acc=0.0)
         errs[lim_cop] = sq_errors(base, flat, flat.index("held")).sum(1).mean()
     assert errs[True] < 0.3 * errs[False], errs

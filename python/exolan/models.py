@@ -176,6 +176,17 @@ class ExoModel(nn.Module):
             tau = tau - self.contact(q, z, self._fv(f_v, q))
         return tau
 
+    def inverse_inertia(self, q, qd, qdd, z=None, f_v=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(`inverse`, H): the inverse dynamics from one evaluation of the Lagrangian's terms and the inertia
+        it used (a diagnosis fit's acceleration term reuses H instead of evaluating the network again)."""
+        self._need_lagrangian("inverse_inertia")
+        z = self._z(z, q)
+        H, c, g = self.delan.terms(q, qd, z)
+        tau = (H @ qdd.unsqueeze(-1)).squeeze(-1) + c + g
+        if self.lim is not None:
+            tau = tau - self.contact(q, z, self._fv(f_v, q))
+        return tau, H
+
     def forward_dynamics(self, q, qd, tau, z=None, f_v=None) -> torch.Tensor:
         self._need_lagrangian("forward_dynamics")
         z = self._z(z, q)

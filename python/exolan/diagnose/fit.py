@@ -549,9 +549,14 @@ class PooledContext(nn.Module):
         return f_v[..., 0] if f_v.dim() == q.dim() else f_v     # a given run has its own insole only
 
     def inverse(self, q, qd, qdd, z, f_v):
-        tau = self.model.inverse(q, qd, qdd, z, self._own(q, f_v))
+        return self.inverse_inertia(q, qd, qdd, z, f_v)[0]
+
+    def inverse_inertia(self, q, qd, qdd, z, f_v):
+        """(τ̂, H): the run's inverse dynamics plus the added load terms, and the inertia it used (the fits'
+        acceleration term reuses H)."""
+        tau, H = self.model.inverse_inertia(q, qd, qdd, z, self._own(q, f_v))
         extra = self._load_torque(q, z, f_v)
-        return tau if extra is None else tau + extra
+        return (tau if extra is None else tau + extra), H
 
     def forward_dynamics(self, q, qd, tau, z, f_v):
         extra = self._load_torque(q, z, f_v)
