@@ -586,6 +586,19 @@ def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the
     assert sorted(map(len, fits)) == [1, 2]       # the pair, then viscous damping alone (cached if seen before)
 
 
+def test_a_reported_interval_ends_where_the_parameters_space_ends():
+    """A damping, friction or delay cannot be negative: a widened interval is cut at 0; an offset, bias or gain
+    keeps its interval as it is, and a strap's k (already ending at ∞) too."""
+    from exolan.diagnose.procedure import _within_bounds
+
+    for effect in ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay"):
+        assert _within_bounds(effect, [-0.1, 3.4]) == [0.0, 3.4]
+        assert _within_bounds(effect, [0.5, 3.4]) == [0.5, 3.4]
+    for effect in ("encoder_offset", "torque_bias", "torque_gain"):
+        assert _within_bounds(effect, [-0.1, 3.4]) == [-0.1, 3.4]
+    assert _within_bounds("strap_compliance", [80.0, float("inf")]) == [80.0, float("inf")]
+
+
 def test_task_invariance_identification_is_family_wise():
     """The rest identify θ when its interval at the family-wise level excludes the no-effect value (Bonferroni
     over the candidates the run considers): a rest θ 2.2 SEs from 0 — a clean world's hip "damping" carried by

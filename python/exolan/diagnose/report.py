@@ -429,7 +429,8 @@ def markdown(rep: dict) -> str:
             if f.get("ci_identification") is not None:
                 how = f.get("warm_start", "the reference refitted with this term alone")
                 L.append(f"  - the interval above adds the spread between the joint fit and the warm start ({how}: "
-                         f"{_fmt(f.get('estimate_warm_start'))}); the joint fit's own (HAC) interval, which "
+                         f"{_fmt(f.get('estimate_warm_start'))}; a sign-constrained parameter's interval ends at its "
+                         f"no-effect value); the joint fit's own (HAC) interval, which "
                          f"rule 4 checks against the no-effect value: {_fmt(f['ci_identification'], 3)}")
             dg = f.get("decision_gain")
             if dg:
