@@ -165,20 +165,20 @@ class ExoModel(nn.Module):
         return self.delan.gravity(q, self._z(z, q))
 
     def inverse(self, q, qd, qdd, z=None, f_v=None) -> torch.Tensor:
-        z = self._z(z, q)
         if self.delan is not None:
-            tau = _delan.inverse_dynamics(self.delan, q, qd, qdd, z)
-        else:
-            s = (torch.cat([q, qd, qdd], dim=-1) - self.state_mean) / self.state_std
-            x = torch.cat([s, z.expand(*q.shape[:-1], self.z_dim)], dim=-1) if self.z_dim else s
-            tau = self.tau_scale * mlp_forward(self.head, x)
+            return self.inverse_inertia(q, qd, qdd, z, f_v)[0]
+        z = self._z(z, q)
+        s = (torch.cat([q, qd, qdd], dim=-1) - self.state_mean) / self.state_std
+        x = torch.cat([s, z.expand(*q.shape[:-1], self.z_dim)], dim=-1) if self.z_dim else s
+        tau = self.tau_scale * mlp_forward(self.head, x)
         if self.lim is not None:
             tau = tau - self.contact(q, z, self._fv(f_v, q))
         return tau
 
     def inverse_inertia(self, q, qd, qdd, z=None, f_v=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(`inverse`, H): the inverse dynamics from one evaluation of the Lagrangian's terms and the inertia
-        it used (a diagnosis fit's acceleration term reuses H instead of evaluating the network again)."""
+        """(`inverse`, H) of a DeLaN-based model: τ = H q̈ + c + g − B f_v from one evaluation of the
+        Lagrangian's terms, and the inertia it used (a diagnosis fit's acceleration term reuses H instead of
+        evaluating the network again)."""
         self._need_lagrangian("inverse_inertia")
         z = self._z(z, q)
         H, c, g = self.delan.terms(q, qd, z)
