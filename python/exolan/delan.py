@@ -231,8 +231,14 @@ class Lagrangian(nn.Module):
 
 def inverse_dynamics(lag: Lagrangian, q, qd, qdd, z=None) -> torch.Tensor:
     """τ = H q̈ + c + g (no contact or extension terms)."""
+    return inverse_dynamics_inertia(lag, q, qd, qdd, z)[0]
+
+
+def inverse_dynamics_inertia(lag: Lagrangian, q, qd, qdd, z=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(τ, H): `inverse_dynamics` and the inertia it used (a fit's acceleration term reuses H instead of
+    evaluating the network again)."""
     H, c, g = lag.terms(q, qd, z)
-    return (H @ qdd.unsqueeze(-1)).squeeze(-1) + c + g
+    return (H @ qdd.unsqueeze(-1)).squeeze(-1) + c + g, H
 
 
 def solve_inertia(H: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:

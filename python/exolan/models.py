@@ -181,8 +181,7 @@ class ExoModel(nn.Module):
         evaluating the network again)."""
         self._need_lagrangian("inverse_inertia")
         z = self._z(z, q)
-        H, c, g = self.delan.terms(q, qd, z)
-        tau = (H @ qdd.unsqueeze(-1)).squeeze(-1) + c + g
+        tau, H = _delan.inverse_dynamics_inertia(self.delan, q, qd, qdd, z)
         if self.lim is not None:
             tau = tau - self.contact(q, z, self._fv(f_v, q))
         return tau, H

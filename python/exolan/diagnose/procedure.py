@@ -650,6 +650,12 @@ def _gated(init: dict, entry: dict, j: int) -> dict:
     return out
 
 
+def _sizes_text(form: dict) -> str:
+    """A sizes form's factors e^{a_u} by user, for the log (the fit from scratch's where there is one)."""
+    return ", ".join(f"{u} ×{math.exp(a):.3g}" for u, a in
+                     zip(form["users"], form.get("log_sizes_from_scratch", form["log_sizes"])))
+
+
 def _param_by_subject(model: ExtendedModel, flat: Flat, effect: str, j: int, users: list[str]) -> dict:
     """A sized term's value for each subject, θ_u = θ e^{a_u}, with a 95 % CI by the HAC sandwich on that
     subject's training rows (as `_param_ci`, conditional on the networks and the other subjects' sizes),
@@ -1362,35 +1368,28 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     # (same seed and recipe, they differ by their form alone; the sizes start equal) and the one
                     # taken is the extended model's fit when it is the only accepted term.
                     sw, sz = tried["switch"], tried["sizes"]
-                    how = "warm start"
-                    if base_start is not None:
-                        how = "from scratch"
+                    how = "warm start" if base_start is None else "from scratch"
+                    if base_start is not None:      # the fits compared replace the warm ones' errors
                         for t in (sw, sz):
                             f0 = dict(t["form"], log_sizes=None) if t is sz else t["form"]
                             t["fresh"] = _fresh_fit(flat, s, [(effect, j)], _gated(
                                 _screen_init(effect, sc), dict(_subject_form=f0, effect=effect), j), base_start)
-                            t["fresh_user"], t["fresh_err"] = held_errors(t["fresh"])
+                            t["cmp_user"], t["cmp_err"] = held_errors(t["fresh"])
                         sz["form"]["log_sizes_from_scratch"] = sz["fresh"].size_values()[effect][j]
-                        adv = _gain(sw["fresh_err"], sz["fresh_err"], s)
-                        wins = _above_noise(adv, sigma_r) and _user_improves(sw["fresh_user"], sz["fresh_user"])
-                    else:
-                        adv = _gain(sw["err"], sz["err"], s)
-                        wins = _above_noise(adv, sigma_r) and _user_improves(sw["user"], sz["user"])
+                    adv = _gain(sw.get("cmp_err", sw["err"]), sz.get("cmp_err", sz["err"]), s)
+                    wins = _above_noise(adv, sigma_r) and _user_improves(sw.get("cmp_user", sw["user"]),
+                                                                         sz.get("cmp_user", sz["user"]))
                     sz["form"]["advantage_over_switch"] = dict(gain=adv["gain"], ci=adv["ci"], scale=scale,
                                                                fitted=how)
                     take = ["sizes"] if wins else ["switch"]
                     if not wins:    # the switch's report says what the sizes did against it
-                        sw["form"]["sizes_advantage_over_switch"] = dict(sz["form"]["advantage_over_switch"],
-                                                                         users=sz["form"]["users"])
-                        if "log_sizes_from_scratch" in sz["form"]:
-                            sw["form"]["sizes_advantage_over_switch"]["log_sizes"] = sz["form"]["log_sizes_from_scratch"]
+                        sw["form"]["sizes_advantage_over_switch"] = dict(
+                            sz["form"]["advantage_over_switch"], users=sz["form"]["users"],
+                            log_sizes=sz["form"].get("log_sizes_from_scratch"))
                     if base_start is not None:
                         fresh_fits[(((effect, j),), _inertia_recipe([(effect, j)]))] = tried[take[0]]["fresh"]
-                    sizes = ", ".join(f"{u} ×{math.exp(a):.3g}" for u, a in
-                                      zip(sz["form"]["users"], sz["form"].get("log_sizes_from_scratch",
-                                                                              sz["form"]["log_sizes"])))
-                    _log(s, f"{effect:18s} {name:9s} a size per subject ({sizes}) against a term of "
-                            f"{', '.join(form['subjects'])} only, both fitted {how}: {_gci(adv)}")
+                    _log(s, f"{effect:18s} {name:9s} a size per subject ({_sizes_text(sz['form'])}) against a term "
+                            f"of {', '.join(form['subjects'])} only, both fitted {how}: {_gci(adv)}")
                 if take:
                     t = tried[take[0]]
                     f, ext, e_user, e = t["form"], t["model"], t["user"], t["err"]
@@ -1401,10 +1400,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                                 f"subject {post} (Q's p {f['heterogeneity']['p']:.2g}); beats the shared term by "
                                 f"{_gci(f['advantage_over_shared'])}")
                     else:
-                        sizes = ", ".join(f"{u} ×{math.exp(a):.3g}" for u, a in
-                                          zip(f["users"], f.get("log_sizes_from_scratch", f["log_sizes"])))
-                        _log(s, f"{effect:18s} {name:9s} every subject at their own size ({sizes}): post-hoc θ by "
-                                f"subject {post} (Q's p {f['heterogeneity']['p']:.2g}); beats the shared term by "
+                        _log(s, f"{effect:18s} {name:9s} every subject at their own size ({_sizes_text(f)}): post-hoc "
+                                f"θ by subject {post} (Q's p {f['heterogeneity']['p']:.2g}); beats the shared term by "
                                 f"{_gci(f['advantage_over_shared'])}")
                 else:
                     nt = {k: v for k, v in form.items() if k not in ("trials", "subject_of_trial")}
