@@ -10,7 +10,7 @@ import torch
 
 from exolan.diagnose import stats
 from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, sample_groups, train
-from exolan.diagnose.procedure import (Settings, _above_noise, _gain, _invariance_reason, _spread,
+from exolan.diagnose.procedure import (Settings, _above_noise, _confirm, _gain, _invariance_reason, _spread,
                                        _track_lag)
 from exolan.diagnose.synthetic import two_link
 
@@ -191,6 +191,35 @@ def test_task_invariance_rule_rejects_a_gain_from_one_task_only():
     assert set(res["groups"]) == {"walk", "squat", "jump", "run"}
     # one recording: not testable, the rule does not decide
     assert _spread(d_one, np.zeros(groups.size, dtype=str), "none", s)["passes"]
+
+
+def test_the_extended_models_confirmation_weights_each_task_by_its_z_score():
+    """Step 7's comparison (`_confirm`): the tasks' held-out gains combined with weights 1/SD, not pooled. A
+    term that helps in every task is confirmed although two noisy tasks (a conservative model's misfit of
+    lunges and ball tosses, 30x the others' sample noise) put the pooled interval across 0; a gain in no
+    task, or one that a refit with another minibatch order changes as much (`twins`), is not; data of a
+    single group fall back on the pooled gain."""
+    rng = np.random.default_rng(3)
+    groups = np.repeat(np.array(["run", "stairs", "lunge", "ball_toss"]), 4000)
+    noisy = np.isin(groups, ["lunge", "ball_toss"])
+    s = Settings(n_boot=300)
+    e_ref = 1e-2 + np.abs(rng.standard_normal(groups.size)) * 1e-3
+    noise = rng.standard_normal(groups.size) * np.where(noisy, 3e-2, 1e-3)
+    helps = 1e-4 + noise
+    c = _confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025)
+    assert c["passes"] and c["ci"][0] > 0 and c["combination"] == "tasks weighted 1/SD"
+    assert c["pooled"]["ci"][0] < 0 < c["pooled"]["gain"]          # the pooled mean would not have confirmed it
+    assert c["weights"]["run"] > 10 * c["weights"]["lunge"] and c["level"] == 0.975
+    assert not _confirm(e_ref, e_ref - noise, groups, "task", s, alpha=0.025)["passes"]
+    # beyond the refit noise, given the twins: a refit that moves every task's gain by 2e-4 sinks it
+    quiet = [np.full(groups.size, 1e-6)] * 3
+    assert _confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025, twins=quiet)["passes"]
+    loud = [np.full(groups.size, 2e-4), np.full(groups.size, -2e-4)]
+    c = _confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025, twins=loud)
+    assert not c["passes"] and c["refit_sd"] == pytest.approx(2e-4)
+    one = np.zeros(groups.size, dtype=str)
+    c = _confirm(e_ref, e_ref - helps, one, "none", s, alpha=0.025)
+    assert c["combination"] == "pooled" and c["gain"] == c["pooled"]["gain"] and c["passes"] == (c["ci"][0] > 0)
 
 
 def _by_group(theta: dict, se: dict):
@@ -487,18 +516,18 @@ def _fresh_extended_loses(monkeypatch, held_too: bool = False):
     `held_too` the second one (the reference's refit with the terms held) as well."""
     import exolan.diagnose.procedure as P
 
-    real = P._gain
+    real = P._confirm
     calls = []
 
-    def gain(e_ref, e_new, s, seed=0, alpha=0.05):
-        g = real(e_ref, e_new, s, seed=seed, alpha=alpha)
-        if alpha == 0.025:
-            calls.append(g["gain"])
-            if len(calls) == 1 or held_too:
-                g = dict(g, gain=-abs(g["gain"]), ci=[-2 * abs(g["gain"]) - 1e-9, -1e-12])
+    def confirm(e_before, e_after, groups, kind, s, alpha, **kw):
+        g = real(e_before, e_after, groups, kind, s, alpha, **kw)
+        assert alpha == 0.025                                   # Bonferroni over the two comparisons
+        calls.append(g["gain"])
+        if len(calls) == 1 or held_too:
+            g = dict(g, gain=-abs(g["gain"]), ci=[-2 * abs(g["gain"]) - 1e-9, -1e-12], passes=False)
         return g
 
-    monkeypatch.setattr(P, "_gain", gain)
+    monkeypatch.setattr(P, "_confirm", confirm)
     return calls
 
 
