@@ -1143,7 +1143,7 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
     term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
     and compared there; the sizes start equal. The form taken is the extended model (no third fit from scratch)
     and the report says how the forms were compared. Rules forced open: the sizes win; then the switch wins
-    where the sizes' fit from scratch does not beat it."""
+    where the sizes' fit from scratch does not beat it, and where it does but fails rule 5 against it."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
@@ -1165,7 +1165,13 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
     monkeypatch.setattr(P, "subject_form", both_forms)
     monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
     spread = P._spread
-    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
+    n = {}
+
+    def rule5(*a, **k):     # open, but for the sizes-against-switch comparison where `n["fail_next"]` says so
+        fail, n["fail_next"] = n.get("fail_next", False), False
+        return dict(spread(*a, **k), passes=not fail)
+
+    monkeypatch.setattr(P, "_spread", rule5)
     fits = []
     real_fresh = P._fresh_fit
 
@@ -1175,17 +1181,18 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
         return m
 
     monkeypatch.setattr(P, "_fresh_fit", recorded)
+    real_gain = P._gain
 
-    def run(out, sizes_win: bool):
+    def run(out, sizes_win: bool, task_bound: bool = False):
         fits.clear()
-        n = {"fresh": 0}
-        real_gain = P._gain
+        n["fresh"] = 0
 
         def gain(e_ref, e_new, s, seed=0, alpha=0.05):
             g = real_gain(e_ref, e_new, s, seed=seed, alpha=alpha)
             # the comparison of the two fits from scratch: sizes against switch
             if len(fits) == 2 and n["fresh"] == 0:
                 n["fresh"] += 1
+                n["fail_next"] = task_bound         # its rule 5 comes next
                 g = dict(g, forced=True) if sizes_win else dict(g, draws=None)
             return g
 
@@ -1216,6 +1223,12 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
     assert over["fitted"] == "from scratch" and len(over["log_sizes"]) == 2
     assert rep["extended"]["parameters"]["viscous_damping:x"] == fits[0][1].estimate("viscous_damping", 0)
     assert "did not beat this term beyond the refit noise" in (tmp_path / "b" / "diagnosis.md").read_text()
+
+    # the sizes beat the switch beyond the refit noise, but their addition fails rule 5: the switch is taken
+    rep = run(tmp_path / "c", sizes_win=True, task_bound=True)
+    (f,) = rep["findings"]
+    assert f["subject_form"]["kind"] == "switch" and f["subjects"] == ["S02"]
+    assert not f["subject_form"]["sizes_advantage_over_switch"]["task_invariance"]["passes"]
 
 
 def test_a_sized_terms_value_by_subject_is_its_subjects_own():
