@@ -1017,7 +1017,7 @@ def _subject_gains(d: np.ndarray, subjects_of_held: np.ndarray, s: Settings) -> 
 
 
 def _confirm(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndarray, kind: str, s: Settings, alpha: float,
-             twins: list | None = None, sigma_r: float = 0.0) -> dict:
+             twins: list | None = None) -> dict:
     """Rule 1 for the extended model (step 7 of `run`): does `e_after` beat `e_before` on held-out data?
 
     Given `twins` (a model that differs from `e_before`'s by its terms and one refit, whose noise the twin refits
@@ -1034,7 +1034,7 @@ def _confirm(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndarray, kind
     the friction held at its estimate from scratch (2.15): pooled 2.3e-4 [-5.7e-5, 6.0e-4] (97.5 %), its SE
     set by ball toss and lunges (group SEs 2.8e-4 and 4.9e-4, running's 2.2e-5); combined 1.6e-4, z = 5.2.
     The pooled gain stays in the record (`pooled`). A single group: the pooled gain, its block-bootstrap
-    interval (and, given `twins`, rule 2's bound with the refit noise `sigma_r`)."""
+    interval (and, given `twins`, rule 2's bound with their refit noise σ_r, the RMS of their mean differences)."""
     g = _gain(e_before, e_after, s, alpha=alpha)
     pooled = dict(gain=g["gain"], ci=g["ci"])
     if twins and kind != "none" and len(np.unique(groups)) >= 2:
@@ -1042,6 +1042,7 @@ def _confirm(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndarray, kind
         b = _balanced(gg, list(gg["gain"]), alpha=alpha)
         return dict(gain=b["gain"], ci=b["ci"], level=1 - alpha, passes=b["above_noise"], pooled=pooled,
                     combination=f"{kind}s weighted 1/SD", weights=b["weights"], refit_sd=b["refit_sd"])
+    sigma_r = float(np.sqrt(np.mean([t.mean() ** 2 for t in twins]))) if twins else 0.0
     passes = g["ci"][0] > 0 and (_above_noise(g, sigma_r, alpha=alpha) if twins else True)
     return dict(gain=g["gain"], ci=g["ci"], level=1 - alpha, passes=bool(passes), pooled=pooled,
                 combination="pooled")
@@ -1761,8 +1762,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         against = f" (against {base_0})" if e_0 is not e_ref else ""
 
         def confirm(e_before, e_after, what: str, refit_noise: bool) -> dict:
-            return dict(_confirm(e_before, e_after, groups, group_kind, s, alpha,
-                                 twins=twin_d if refit_noise else None, sigma_r=sigma_r if refit_noise else 0.0),
+            return dict(_confirm(e_before, e_after, groups, group_kind, s, alpha, twins=twin_d if refit_noise else None),
                         scale=scale, against=what)
 
         g_dec = confirm(e_0, d_ext, base_0, refit_noise=False)
