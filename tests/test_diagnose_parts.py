@@ -430,13 +430,17 @@ def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_del
 
 def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
     """Diagnose a linear drive (viscous damping planted) for damping and Coulomb friction with rules 2 and 5
-    forced open, so that both terms reach forward selection. Returns the report and the effect sets fitted
-    from scratch; `joint_ci(effect, pci)` may replace the parameter CI of a from-scratch fit."""
+    forced open (and the noise bound of the tasks' combined gain, `_balanced`), so that both terms reach forward
+    selection. Returns the report and the effect sets fitted from scratch (the term-free fits at other seeds
+    that measure the noise between optima among them); `joint_ci(effect, pci)` may replace the parameter CI
+    of a from-scratch fit."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
     monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: True)
+    balanced = P._balanced
+    monkeypatch.setattr(P, "_balanced", lambda *a, **k: dict(balanced(*a, **k), above_noise=True))
     monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
     spread = P._spread
     monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
@@ -468,13 +472,19 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
     """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
     the further term is refitted with the accepted one from scratch, the report carries that comparison, and
     the extended model is the cached from-scratch fit of the final set (no third fit), its terms the reported
-    estimates."""
+    estimates. Both comparisons of fits from scratch combine the trials' gains beyond the noise between optima,
+    measured once by the term-free base fitted at `n_optima` other seeds."""
     rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch)
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     cg = second[0]["conditional_gain"]     # the user's unweighted gain is reported beside the decision's
     assert np.isfinite(cg["user_gain"]) and np.isfinite(cg["from_scratch"]["user_gain"])
-    assert len(fits) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
+    assert cg["from_scratch"]["combination"] == "trials weighted 1/SD" and cg["from_scratch"]["noise_between_optima"] > 0
+    with_terms = [f for f in fits if f]
+    assert len(with_terms) == 2 and sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
+    assert len(fits) - len(with_terms) == Settings().n_optima          # the term-free twins, fitted once
+    cf = rep["extended"]["confirmation"]
+    assert cf["noise"].startswith("between optima") and cf["refit_sd"] > 0
     assert rep["extended"]["model"] == "fitted from scratch with the terms"
     for f in rep["findings"]:
         assert rep["extended"]["parameters"][f"{f['effect']}:x"] == pytest.approx(f["estimate"], rel=1e-9)
@@ -503,7 +513,8 @@ def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(
     assert ((first,), True) in calls
     assert any(set(e) == {"viscous_damping", "coulomb_friction"} and c for e, c in calls)
     assert ((), True) in calls                              # the term-free base of the confirmation
-    assert len(calls) == 3                                  # each fitted once (cached)
+    # each fitted once (cached): the two with terms, the term-free base and its twins at other seeds
+    assert len(calls) == 3 + Settings().n_optima and calls.count(((), True)) == 1 + Settings().n_optima
     cf = rep["extended"]["confirmation"]
     assert cf["against"] == "a base fitted from scratch with the same recipe" and cf["level"] == 0.975
     assert "same recipe" in rep["extended"]["model"]
@@ -513,7 +524,8 @@ def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(
 
 def _fresh_extended_loses(monkeypatch, held_too: bool = False):
     """Make the extended model's first confirmation (the fit from scratch, judged at alpha 0.025) lose; with
-    `held_too` the second one (the reference's refit with the terms held) as well."""
+    `held_too` the second one (the reference's refit with the terms held) as well. Forward selection's
+    comparison of two fits from scratch (alpha 0.05) is left as it is."""
     import exolan.diagnose.procedure as P
 
     real = P._confirm
@@ -521,7 +533,8 @@ def _fresh_extended_loses(monkeypatch, held_too: bool = False):
 
     def confirm(e_before, e_after, groups, kind, s, alpha, **kw):
         g = real(e_before, e_after, groups, kind, s, alpha, **kw)
-        assert alpha == 0.025                                   # Bonferroni over the two comparisons
+        if alpha != 0.025:                                      # Bonferroni over step 7's two comparisons
+            return g
         calls.append(g["gain"])
         if len(calls) == 1 or held_too:
             g = dict(g, gain=-abs(g["gain"]), ci=[-2 * abs(g["gain"]) - 1e-9, -1e-12], passes=False)
@@ -600,6 +613,62 @@ def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, mo
     assert all(p.requires_grad for p in m.ext_parameters())
 
 
+def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_and_judged_beyond_the_noise_between_optima(
+        tmp_path, monkeypatch):
+    """Rescue (step 2): where a friction's warm refit fails rule 2 (forced here), the term is fitted from scratch
+    and judged against the reference beyond the noise between optima (`_confirm` with the term-free fits at
+    other seeds as twins, 97.5 %). When that passes (forced), the fit from scratch stands in for the candidate:
+    its estimate, its gains and the extended model (the same cached fit), the warm fit kept beside it; when it
+    fails, the candidate stays rejected with the from-scratch comparison on record."""
+    import exolan.diagnose.procedure as P
+    from exolan.diagnose import diagnose
+    from exolan.diagnose.synthetic import linear_drive
+
+    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: False)
+    monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
+    spread = P._spread
+    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
+    seen, fits = [], []
+    real_confirm, real_fresh = P._confirm, P._fresh_fit
+
+    def fresh(flat, s, effects, init, start, confused=None):
+        fits.append((tuple(e for e, _ in effects), s.seed))
+        return real_fresh(flat, s, effects, init, start, confused=confused)
+
+    monkeypatch.setattr(P, "_fresh_fit", fresh)
+    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
+    for verdict in (True, False):
+        def confirm(e_before, e_after, groups, kind, s, alpha, twins=None):
+            g = real_confirm(e_before, e_after, groups, kind, s, alpha, twins=twins)
+            seen.append(dict(alpha=alpha, twins=twins))
+            return dict(g, passes=verdict)
+
+        monkeypatch.setattr(P, "_confirm", confirm)
+        seen.clear(), fits.clear()
+        rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60,
+                       effects=("viscous_damping", "coulomb_friction"), verbose=False)
+        twins = seen[0]["twins"]
+        # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison
+        assert [f for f in fits if not f[0]] == [((), 1000 * (k + 1)) for k in range(Settings().n_optima)]
+        assert len(twins) == Settings().n_optima and all(c["twins"] is twins and c["alpha"] == 0.025 for c in seen)
+        tried = {e["effect"]: e for e in rep["findings"] + rep["rejected"] if "from_scratch" in e}
+        assert set(tried) == {"viscous_damping", "coulomb_friction"}
+        if not verdict:
+            assert rep["findings"] == [] and all(not e["from_scratch"]["passes"] for e in tried.values())
+            assert all("refit noise floor" in e["reason"] for e in tried.values())
+            continue
+        # both pass alone; the larger is accepted and the other adds nothing on top of it (rule 2, forced closed)
+        (f,) = rep["findings"]
+        assert f["effect"] == "viscous_damping" and f["decision_gain"]["fitted"] == "from scratch"
+        assert f["estimate"] == pytest.approx(f["from_scratch"]["estimate"], rel=1e-6)
+        assert f["warm_fit"]["estimate"] != f["estimate"] and f["warm_start"].startswith("none")
+        assert rep["extended"]["model"] == "fitted from scratch with the terms"
+        assert rep["extended"]["parameters"]["viscous_damping:x"] == pytest.approx(f["estimate"], rel=1e-6)
+        assert len([x for x in fits if x[0]]) == 2      # the extended model is the rescue's cached fit
+        md = (tmp_path / "True" / "diagnosis.md").read_text()
+        assert "(warm start) failed rule 1 or 2" in md and "beyond the noise between optima" in md
+
+
 def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path, monkeypatch):
     """Rule 4 once more in the joint from-scratch fit: an accepted term whose parameter that fit does not
     identify is reported as ambiguous, and the extended model is fitted again without it (rules forced open
@@ -612,7 +681,8 @@ def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the
     assert coulomb["status"] == "ambiguous" and "does not identify it" in coulomb["reason"]
     assert [f["effect"] for f in rep["findings"]] == ["viscous_damping"]
     assert rep["extended"]["terms"] == ["viscous_damping:x"]
-    assert sorted(map(len, fits)) == [1, 2]       # the pair, then viscous damping alone (cached if seen before)
+    # the pair, then viscous damping alone (cached if seen before); and the term-free twins of the noise between optima
+    assert sorted(len(f) for f in fits if f) == [1, 2] and len([f for f in fits if not f]) == Settings().n_optima
 
 
 def test_a_reported_interval_ends_where_the_parameters_space_ends():
@@ -1177,7 +1247,8 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
 
     def recorded(flat, s, effects, init, start, confused=None):
         m = real_fresh(flat, s, effects, init, start, confused=confused)
-        fits.append((init, m))
+        if effects:                 # not the term-free twins of the noise between optima
+            fits.append((init, m))
         return m
 
     monkeypatch.setattr(P, "_fresh_fit", recorded)
@@ -1300,10 +1371,12 @@ def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch):
                         {"findings": []})
     assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--computed-gain-limit", "--unweighted",
                  "--measured-delay-limit", "--no-adapt-model", "--no-lim-cop", "--no-pelvis-surge", "--pelvis-tilt",
-                 "--seed", "3"]) == 0
+                 "--seed", "3", "--no-rescue", "--optima", "3"]) == 0
     assert seen == dict(inject_gain=False, inject_delay=True, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
-                        pelvis_tilt=True, seed=3)
+                        pelvis_tilt=True, seed=3, rescue=False, n_optima=3)
     assert set(seen) <= {f.name for f in dataclasses.fields(D.Settings)}
+    with pytest.raises(SystemExit, match="at least 1"):
+        main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--optima", "0"])
 
 
 def test_the_reports_limits_table_says_none_where_no_gain_shows_and_lists_each_injection():

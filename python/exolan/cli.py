@@ -130,6 +130,12 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--computed-gain-limit", action="store_true",
                    help="report the exo torque gain's detection limit as computed at the base's misfit (optimistic) "
                         "instead of measuring it by writing a known gain into the data (saves one or two base fits)")
+    p.add_argument("--no-rescue", action="store_true",
+                   help="do not fit a friction from scratch where its warm refit fails the gain rules (saves a base "
+                        "fit per such friction, and the term-free fits below when nothing else needs them)")
+    p.add_argument("--optima", type=int, default=None, metavar="N",
+                   help="term-free fits from scratch at N other seeds that measure the noise between optima, against "
+                        "which every fit from scratch is judged (default 2; at least 1)")
     p.add_argument("--measured-delay-limit", action="store_true",
                    help="also measure the actuation delay's detection limit by writing a known delay into the data "
                         "(in the gain's injection fit; confounded where the data hold a delay already)")

@@ -152,6 +152,12 @@ def cli_diagnose(args) -> int:
         settings["inject_gain"] = False
     if getattr(args, "measured_delay_limit", False):
         settings["inject_delay"] = True
+    if getattr(args, "no_rescue", False):
+        settings["rescue"] = False
+    if getattr(args, "optima", None) is not None:
+        if args.optima < 1:
+            raise SystemExit("exolan diagnose: --optima must be at least 1 (the noise between optima needs a twin)")
+        settings["n_optima"] = args.optima
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:

@@ -434,7 +434,16 @@ def markdown(rep: dict) -> str:
                          f"rule 4 checks against the no-effect value: {_fmt(f['ci_identification'], 3)}")
             dg = f.get("decision_gain")
             if dg:
-                L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}")
+                L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}"
+                         + (f" ({dg['combination']}, {100 * dg['level']:.1f}% CI, fitted from scratch: beyond the "
+                            f"noise between optima {_fmt(dg['noise_between_optima'], 3)})"
+                            if dg.get("fitted") == "from scratch" else ""))
+            wf = f.get("warm_fit")
+            if wf:
+                wg = wf["decision_gain"]
+                L.append(f"  - the reference refitted with this term (warm start) failed rule 1 or 2: estimate "
+                         f"{_fmt(wf['estimate'])}, decision gain {_fmt(wg['gain'], 3)} CI {_fmt(wg['ci'], 3)} (a warm "
+                         f"start keeps what the base absorbed of the effect); the term was fitted from scratch")
             L += _evidence_lines(f)
     else:
         L.append("- **Nothing found**: no candidate effect passed the decision rule on held-out data.")
