@@ -102,7 +102,8 @@ refits' part (rule 2) in every comparison of fits from scratch, and a task where
 little in the combination.
 
 **Rescue from scratch.** A friction (damping, Coulomb, Stribeck: not exo-driven, shared by the subjects) whose
-screen asked for it but whose warm refit failed rule 1 or 2 is fitted from scratch and judged against the
+screen asked for it and whose warm refit identified it (rule 4) but failed rule 1 or 2 is fitted from scratch and
+judged against the
 reference beyond the noise between optima at the extended model's level (97.5 %): a warm start keeps what the
 base absorbed of a dissipation, and the base can absorb most of it. Where that passes, the fit from scratch
 stands for the candidate in the later rules (`warm_fit` keeps the warm one). The
@@ -1353,7 +1354,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     held_subject = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[held].numpy()])
 
     def rescue_from_scratch(entry: dict, effect: str, j: int, sc: dict) -> None:
-        """Rules 1 and 2 once more for a friction whose screen asked for it and whose warm refit failed them: the
+        """Rules 1 and 2 once more for a friction whose screen asked for it and whose warm refit identifies it
+        (rule 4) but failed them — what a base that absorbed most of the effect leaves to a warm start: the
         term fitted from scratch against the reference, beyond the noise between optima (`optima`), the tasks'
         gains combined (`_confirm`) at the extended model's level (97.5 %, step 7). Where it passes, the fit from
         scratch stands for the candidate in every later rule (its estimate, gains, rule 5 with the same noise).
@@ -1365,7 +1367,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         stairs and lunges at every seed. Yet that world's damping is not rescued: from the screen's start it
         came out 1.60 and gained 2.0e-4 [-4.4e-5, 4.5e-4] combined at 97.5 %, within the noise between optima
         (started at 0.5: 4.1e-4 [2.3e-4, 5.8e-4], it would have passed). A clean world of the same tasks (seed
-        502) rescued nothing (a hip damping 0.076 and a knee Stribeck 0.12, both within that noise). Frictions
+        502) rescued nothing (a hip damping 0.076 and a knee Stribeck 0.12, both within that noise, both
+        unidentified on their warm fits, 0.036 [-0.006, 0.077] and 0.097 [-0.18, 0.37]: such a warm fit shows no
+        effect to rescue, and is no longer tried; that cut the cost of the rescue there from 143 s to none). Frictions
         only: an exo-driven term's fit from scratch is not identified alone (a torque gain ends where it starts,
         `_fresh_fit`) and its nulls (rule 3) are warm refits."""
         key = ((effect, j),)
@@ -1608,8 +1612,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             fitted[(effect, j)] = (ext, e)
             _log(s, f"{effect:18s} {name:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {_gci(gu)} "
                     f"rel {gu['rel']:.3f}; decision ({scale}) {_gci(g)} ({time.time() - t1:.0f} s)")
+            # the absorbed case only: the warm fit identifies the term (rule 4) and fails on its gain alone
             if (s.rescue and base_start is not None and c.kind == "finding" and not c.needs_exo and
-                    "_subject_form" not in entry and not (entry["passes_gain"] and entry["passes_floor"])):
+                    "_subject_form" not in entry and entry["identifiable"] and
+                    not (entry["passes_gain"] and entry["passes_floor"])):
                 rescue_from_scratch(entry, effect, j, sc)
 
     # 3. nulls for exo-driven candidates that pass so far: the same term fitted on the exo torque taken
