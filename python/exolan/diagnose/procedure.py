@@ -1380,11 +1380,12 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         gf = _confirm(e_0, e_f, groups, group_kind, s, 0.025, twins=tw)
         pf = _param_ci(m, flat, effect, j)
         est, ci = _report_param(effect, pf)
-        passes = bool(gf["passes"] and _user_improves(u_0, u_f) and _identifiable(effect, pf, s.max_delay))
+        identified = _identifiable(effect, pf, s.max_delay)
+        passes = bool(gf["passes"] and _user_improves(u_0, u_f) and identified)
         entry["from_scratch"] = dict(estimate=est, ci=ci, decision_gain=dict(
             gain=gf["gain"], ci=gf["ci"], level=gf["level"], combination=gf["combination"], pooled=gf["pooled"],
             noise_between_optima=gf.get("refit_sd"), above_noise=gf["passes"], scale=scale),
-            user_gain=float(np.mean(u_0 - u_f)), identified=_identifiable(effect, pf, s.max_delay), passes=passes)
+            user_gain=float(np.mean(u_0 - u_f)), identified=identified, passes=passes)
         _log(s, f"{effect:18s} {flat.joints[j]:9s} its warm refit failed rule 1 or 2; from scratch est {est:.4g} ci "
                 f"[{ci[0]:.3g}, {ci[1]:.3g}], decision {_gci(gf)} at {100 * gf['level']:.1f} % ({gf['combination']}, "
                 f"beyond the noise between optima: {'passes' if passes else 'fails'}; {time.time() - t1:.0f} s)")
@@ -1443,7 +1444,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     results = []
     fitted = {}
     fresh_fits: dict = {}       # ((effect, joint) tuples, recipe) -> model fitted from scratch (`_fresh_fit`)
-    optimum_twins: dict = {}    # recipe -> the per-sample differences of `optima`
+    optimum_twins: dict = {}    # recipe -> what `optima` returns (fitted and evaluated once per recipe)
 
     def fresh(key: tuple, init: dict, recipe: tuple | None = None) -> ExtendedModel:
         """The terms `key` fitted from scratch (once) with the recipe of the terms `recipe` (default: `key`'s own):
@@ -1459,15 +1460,16 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         decision) held-out errors, and the noise between optima: the per-sample held-out differences between
         that base and the same fitted at `Settings.n_optima` other minibatch seeds (`_optimum_twins`)."""
         conf = _inertia_recipe(key)
-        u_0, e_0 = (e_ref_user, e_ref) if not conf else held_errors(fresh((), {}, recipe=key))
         if conf not in optimum_twins:
             t1 = time.time()
-            optimum_twins[conf] = [e_0 - held_errors(m)[1] for m in _optimum_twins(flat, s, base_start, conf)]
+            u_0, e_0 = (e_ref_user, e_ref) if not conf else held_errors(fresh((), {}, recipe=key))
+            twins = [e_0 - held_errors(m)[1] for m in _optimum_twins(flat, s, base_start, conf)]
+            optimum_twins[conf] = (u_0, e_0, twins)
             _log(s, "noise between optima: the term-free base fitted from scratch at other minibatch seeds"
                     f"{' (the delay recipe)' if conf else ''} differs from the one judged against by "
-                    + ", ".join(f"{d.mean():.3g}" for d in optimum_twins[conf])
+                    + ", ".join(f"{d.mean():.3g}" for d in twins)
                     + f" ({scale}, mean held-out difference; {time.time() - t1:.0f} s)")
-        return u_0, e_0, optimum_twins[conf]
+        return optimum_twins[conf]
 
     for effect in s.effects:
         c = LIBRARY[effect]
@@ -1894,13 +1896,12 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 base_0 = "a base fitted from scratch with the same recipe"
         against = f" (against {base_0})" if e_0 is not e_ref else ""
 
-        def confirm(e_before, e_after, what: str, twins: list | None) -> dict:
-            noise = ("between optima (term-free fits from scratch at other seeds)" if twins is between and twins
-                     else "twin refits" if twins else None)
+        def confirm(e_before, e_after, what: str, twins: list | None, noise: str | None) -> dict:
             return dict(_confirm(e_before, e_after, groups, group_kind, s, alpha, twins=twins), scale=scale,
                         against=what, noise=noise)
 
-        g_dec = confirm(e_0, d_ext, base_0, twins=between)
+        g_dec = confirm(e_0, d_ext, base_0, between,
+                        "between optima (term-free fits from scratch at other seeds)" if between else None)
         confirmed = bool(g_dec["passes"] and _user_improves(u_0, u_ext))
         confirmation = g_dec
         ext_how = ("fitted from scratch with the terms" + against if two else
@@ -1909,7 +1910,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         if not confirmed and two:
             held_at = _around_estimates(base, ext_model, flat, s, effs)
             u_h, d_h = held_errors(held_at)
-            g_h = confirm(e_ref, d_h, "the reference", twins=twin_d)
+            g_h = confirm(e_ref, d_h, "the reference", twin_d, "twin refits")
             _log(s, f"extended {effs}: from scratch {_gci(g_dec)}{against}; "
                     f"the reference's refit with the terms held there {_gci(g_h)} ({scale}, {g_h['combination']})")
             if g_h["passes"] and _user_improves(e_ref_user, u_h):
