@@ -613,13 +613,14 @@ def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, mo
     assert all(p.requires_grad for p in m.ext_parameters())
 
 
-def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_and_judged_beyond_the_noise_between_optima(
+def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_and_judged_paired(
         tmp_path, monkeypatch):
     """Rescue (step 2): where a friction's warm refit fails rule 2 (forced here), the term is fitted from scratch
-    and judged against the reference beyond the noise between optima (`_confirm` with the term-free fits at
-    other seeds as twins, 97.5 %). When that passes (forced), the fit from scratch stands in for the candidate:
-    its estimate, its gains and the extended model (the same cached fit), the warm fit kept beside it; when it
-    fails, the candidate stays rejected with the from-scratch comparison on record."""
+    at the reference's seed and at the optimum twins' seeds, each fit paired with the term-free base of its seed
+    (`_paired_confirm`, 97.5 %). When that passes (forced), the fit at the reference's seed stands in for the
+    candidate: its estimate, its gains and the extended model (the same cached fit, confirmed by the same paired
+    comparison), the warm fit kept beside it; when it fails, the candidate stays rejected with the comparison
+    on record."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
@@ -629,30 +630,39 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_and_judged_bey
     spread = P._spread
     monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
     seen, fits = [], []
-    real_confirm, real_fresh = P._confirm, P._fresh_fit
+    real_paired, real_fresh = P._paired_confirm, P._fresh_fit
 
     def fresh(flat, s, effects, init, start, confused=None):
-        fits.append((tuple(e for e, _ in effects), s.seed))
-        return real_fresh(flat, s, effects, init, start, confused=confused)
+        m = real_fresh(flat, s, effects, init, start, confused=confused)
+        fits.append((tuple(e for e, _ in effects), s.seed, m))
+        return m
 
     monkeypatch.setattr(P, "_fresh_fit", fresh)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
+    K = Settings().n_optima + 1
     for verdict in (True, False):
-        def confirm(e_before, e_after, groups, kind, s, alpha, twins=None):
-            g = real_confirm(e_before, e_after, groups, kind, s, alpha, twins=twins)
-            seen.append(dict(alpha=alpha, twins=twins))
-            return dict(g, passes=verdict)
+        def paired(pairs, groups, kind, s, alpha):
+            g = real_paired(pairs, groups, kind, s, alpha)
+            seen.append(dict(alpha=alpha, pairs=pairs, g=g))
+            return dict(g, passes=verdict, user_gain=1.0)
 
-        monkeypatch.setattr(P, "_confirm", confirm)
+        monkeypatch.setattr(P, "_paired_confirm", paired)
         seen.clear(), fits.clear()
         rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60,
                        effects=("viscous_damping", "coulomb_friction"), verbose=False)
-        twins = seen[0]["twins"]
         # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison
-        assert [f for f in fits if not f[0]] == [((), 1000 * (k + 1)) for k in range(Settings().n_optima)]
-        assert len(twins) == Settings().n_optima and all(c["twins"] is twins and c["alpha"] == 0.025 for c in seen)
+        assert [f[:2] for f in fits if not f[0]] == [((), 1000 * k) for k in range(1, K)]
         tried = {e["effect"]: e for e in rep["findings"] + rep["rejected"] if "from_scratch" in e}
-        assert set(tried) == {"viscous_damping", "coulomb_friction"}
+        assert "viscous_damping" in tried and seen and all(c["alpha"] == 0.025 for c in seen)
+        for c in seen:
+            # every seed's term-free fit paired with the fit with the term at that seed
+            assert len(c["pairs"]) == K and len(c["g"]["gain_by_seed"]) == K and c["g"]["seeds"] == K
+        for eff, e in tried.items():
+            seeds = sorted(f[1] for f in fits if f[0] == (eff,))
+            if "decision_gain" in e["from_scratch"]:
+                assert seeds == [1000 * k for k in range(K)] and len(e["from_scratch"]["estimates_by_seed"]) == K
+            else:       # stopped at the reference's seed: no gain there, or not identified
+                assert seeds == [0] and e["from_scratch"]["why"]
         if not verdict:
             assert rep["findings"] == [] and all(not e["from_scratch"]["passes"] for e in tried.values())
             assert all("refit noise floor" in e["reason"] for e in tried.values())
@@ -660,13 +670,49 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_and_judged_bey
         # both pass alone; the larger is accepted and the other adds nothing on top of it (rule 2, forced closed)
         (f,) = rep["findings"]
         assert f["effect"] == "viscous_damping" and f["decision_gain"]["fitted"] == "from scratch"
+        assert f["decision_gain"]["seeds"] == K and f["decision_gain"]["design"] == "paired over minibatch seeds"
         assert f["estimate"] == pytest.approx(f["from_scratch"]["estimate"], rel=1e-6)
+        assert f["from_scratch"]["estimates_by_seed"][0] == pytest.approx(f["estimate"], rel=1e-6)
         assert f["warm_fit"]["estimate"] != f["estimate"] and f["warm_start"].startswith("none")
         assert rep["extended"]["model"] == "fitted from scratch with the terms"
         assert rep["extended"]["parameters"]["viscous_damping:x"] == pytest.approx(f["estimate"], rel=1e-6)
-        assert len([x for x in fits if x[0]]) == 2      # the extended model is the rescue's cached fit
+        assert rep["extended"]["confirmation"]["noise"] == f"the spread of the paired gains over {K} seeds"
+        seed0 = [m for e, sd, m in fits if e == ("viscous_damping",) and sd == 0]
+        assert len(seed0) == 1      # the extended model is the rescue's cached fit at the reference's seed
         md = (tmp_path / "True" / "diagnosis.md").read_text()
-        assert "(warm start) failed rule 1 or 2" in md and "beyond the noise between optima" in md
+        assert "(warm start) failed rule 1 or 2" in md and "each paired with the term-free fit of its seed" in md
+
+
+def test_the_paired_comparison_over_seeds_needs_every_seed_and_measures_their_spread():
+    """`_paired_confirm`: the gain is the seeds' mean paired gain; its noise beside the samples' is the SE of that
+    mean over seeds (the twins it builds have exactly that RMS), per task and combined; a comparison whose
+    mean is large but one of whose seeds loses fails, and so does one whose seeds disagree widely."""
+    from exolan.diagnose.procedure import _paired_confirm
+
+    rng = np.random.default_rng(3)
+    s = Settings(n_boot=200)
+    n = 4000
+    groups = np.repeat(np.array(["run", "stairs"]), n // 2)
+    free = 1.0 + 0.1 * rng.standard_normal(n)
+
+    def pairs_with(gains):       # per seed, the term-free errors and the errors with the term, gain per seed
+        return [(free + 0.01 * k, free + 0.01 * k - g - 1e-4 * rng.standard_normal(n)) for k, g in enumerate(gains)]
+
+    good = _paired_confirm(pairs_with([0.010, 0.012, 0.011]), groups, "task", s, 0.025)
+    assert good["passes"] and good["seeds"] == 3 and good["gain"] == pytest.approx(0.011, rel=0.05)
+    assert all(v > 0 for v in good["gain_by_seed"]) and good["level"] == 0.975
+    # the twins' RMS is the SE of the seeds' mean gain, in the combination the decision uses
+    w = np.array([good["weights"][g] for g in good["weights"]])
+    assert good["refit_sd"] == pytest.approx(np.std(good["gain_by_seed"], ddof=1) / np.sqrt(3), rel=1e-6)
+    assert w.sum() == pytest.approx(1.0)
+    one_loses = _paired_confirm(pairs_with([0.030, 0.030, -0.001]), groups, "task", s, 0.025)
+    assert not one_loses["passes"] and one_loses["gain"] > 0.015
+    spread = _paired_confirm(pairs_with([0.001, 0.030, 0.002]), groups, "task", s, 0.025)
+    assert not spread["passes"] and not spread["passes_bound"] and all(v > 0 for v in spread["gain_by_seed"])
+    # one recording (no tasks): the pooled gain, the same noise
+    pooled = _paired_confirm(pairs_with([0.010, 0.012, 0.011]), groups, "none", s, 0.025)
+    assert pooled["passes"] and pooled["combination"] == "pooled"
+    assert pooled["refit_sd"] == pytest.approx(np.std(pooled["gain_by_seed"], ddof=1) / np.sqrt(3), rel=1e-6)
 
 
 def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path, monkeypatch):

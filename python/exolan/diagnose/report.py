@@ -435,8 +435,10 @@ def markdown(rep: dict) -> str:
             dg = f.get("decision_gain")
             if dg:
                 L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}"
-                         + (f" ({dg['combination']}, {100 * dg['level']:.1f}% CI, fitted from scratch: beyond the "
-                            f"noise between optima {_fmt(dg['noise_between_optima'], 3)})"
+                         + (f" ({dg['combination']}, {100 * dg['level']:.1f}% CI, fitted from scratch at "
+                            f"{dg.get('seeds')} seeds, each paired with the term-free fit of its seed: beyond the "
+                            f"spread of the paired gains {_fmt(dg.get('noise_between_seeds'), 3)}, by seed "
+                            f"{_fmt(dg.get('gain_by_seed'), 3)})"
                             if dg.get("fitted") == "from scratch" else ""))
             wf = f.get("warm_fit")
             if wf:
