@@ -1083,8 +1083,9 @@ def _paired_confirm(pairs: list, groups: np.ndarray, kind: str, s: Settings, alp
     far less between seeds. Measured (knee damping 1.5 N m s/rad, 3 users, run, stairs up, lunge, ball toss,
     seed 504, test settings, the damping started at 0.5, seeds 0/1000/2000): stairs up's paired gains 2.7e-4,
     2.3e-4, 3.7e-4 while the term-free fits there differed by 9e-5 and −1.7e-4; combined 3.6e-4, bound +8.6e-5
-    at 97.5 % (found), where the cross-seed design gave 2.0e-4 [−4.4e-5, 4.5e-4] (missed). A clean world of the
-    same tasks (seed 502), the hip damping its rescue tried: combined 8.0e-5, bound −4.3e-5 (nothing found)."""
+    at 97.5 % (passes), where the cross-seed design gave 2.0e-4 [−4.4e-5, 4.5e-4] (fails; started at the
+    screen's estimate). A clean world of the same tasks (seed 502), a hip damping fitted so (started at 0.5):
+    combined 8.0e-5, bound −4.3e-5 (fails)."""
     K = len(pairs)
     D = np.array([np.asarray(f, np.float64) - np.asarray(t, np.float64) for f, t in pairs])
     e_free = np.mean([np.asarray(f, np.float64) for f, _ in pairs], axis=0)
@@ -1410,10 +1411,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         paired design avoids. Paired (seeds 0, 1000, 2000: 1.60, 1.53, 1.79) it gains 2.7e-4 [1.2e-4, 4.3e-4],
         1.7e-4, 3.0e-4 and 3.5e-4 by seed, and passes; rule 5 then rejects it narrowly (without running, the
         other tasks' gain is 1.2e-4 [-4.1e-5, 2.9e-4]), so that world's damping is still missed, now by the
-        rule that asks the gain of more than one task. A clean world of the same tasks (seed 502) tried no rescue. The warm fit must
-        identify the term: unidentified warm fits (0.036 [-0.006, 0.077]) show no effect to rescue (that gate cut
-        the rescue's cost there from 143 s to none). Seed 0's fit must gain (its combined gain against the
-        reference above 0) before the other seeds are fitted. Frictions only: an exo-driven term's fit from
+        rule that asks the gain of more than one task. A clean world of the same tasks (seed 502) tried no
+        rescue. The warm fit must identify the term: unidentified warm fits (0.036 [-0.006, 0.077]) show no
+        effect to rescue (that gate cut the rescue's cost there from 143 s to none). Seed 0's fit must gain (its
+        combined gain against the reference above 0) before the other seeds are fitted. Frictions only: an exo-driven term's fit from
         scratch is not identified alone (a torque gain ends where it starts, `_fresh_fit`) and its nulls
         (rule 3) are warm refits."""
         key = ((effect, j),)
@@ -1538,8 +1539,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     def paired(key: tuple, init: dict, first: ExtendedModel) -> dict:
         """The terms `key` fitted from scratch at the seeds of the optimum twins too (`first`: the fit at the
         reference's seed), each paired with the term-free base of its seed: `_paired_confirm` at 97.5 % (the
-        extended model's level, step 7), with the user's mean paired gain beside it. Kept per key: step 7
-        judges a set of terms whose paired comparison exists by it."""
+        extended model's level, step 7), with the user's gain of the fit at the reference's seed beside it. Kept
+        per key: step 7 judges a set of terms whose paired comparison exists by it."""
         conf = _inertia_recipe(key)
         u_0, e_0, _ = optima(key)
         u_f, e_f = held_errors(first)
