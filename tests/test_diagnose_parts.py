@@ -681,6 +681,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         assert len(seed0) == 1      # the extended model is the rescue's cached fit at the reference's seed
         md = (tmp_path / "True" / "diagnosis.md").read_text()
         assert "(warm start) failed rule 1 or 2" in md and "each paired with the term-free fit of its seed" in md
+        assert f"its noise: the spread of the paired gains over {K} seeds" in md
 
 
 def test_the_paired_comparison_over_seeds_needs_every_seed_and_measures_their_spread():

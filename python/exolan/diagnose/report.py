@@ -466,7 +466,8 @@ def markdown(rep: dict) -> str:
             L.append(f"- confirmed against {cf['against']}: {_fmt(cf['gain'], 3)} ({U})², "
                      f"{100 * cf['level']:.1f}% CI {_fmt(cf['ci'], 3)} ({cf['scale']}"
                      + (f"; {cf['combination']}, pooled {_fmt(cf['pooled']['gain'], 3)} CI {_fmt(cf['pooled']['ci'], 3)}"
-                        if cf.get("combination", "pooled") != "pooled" else "") + ")")
+                        if cf.get("combination", "pooled") != "pooled" else "")
+                     + (f"; its noise: {cf['noise']}" if cf.get("noise") else "") + ")")
         for k, v in (ext.get("rollout_gain") or {}).items():
             L.append(f"- rollout {k} reduction: {_fmt(v['gain'], 3)} CI {_fmt(v['ci'], 3)}")
     nf = rep["baseline"].get("noise_floor")
