@@ -1247,6 +1247,12 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     return m
 
 
+def _other_seeds(s: Settings) -> list[Settings]:
+    """The settings of the `Settings.n_optima` other minibatch seeds (s + 1000 k): those of the optimum twins,
+    and of the fits with terms that a paired comparison sets beside them seed by seed (`run`'s `paired`)."""
+    return [replace(s, seed=s.seed + 1000 * (k + 1)) for k in range(max(int(s.n_optima), 1))]
+
+
 def _optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bool) -> list[ExtendedModel]:
     """The term-free base fitted from scratch (`_fresh_fit`, recipe `confused`) at `Settings.n_optima` other
     minibatch seeds: the optima that a fit from scratch lands in by chance.
@@ -1260,8 +1266,7 @@ def _optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bo
     tosses, and by 9.9e-5 and 1.8e-4 with the tasks combined (`_balanced`); the damping fitted from scratch
     (1.58) gained 8.0e-4 pooled and 4.4e-4 [2.7e-4, 6.2e-4] combined, in every task. Their differences to the
     base judged against are the `twins` of `_confirm` for every comparison of a fit from scratch with it."""
-    return [_fresh_fit(flat, replace(s, seed=s.seed + 1000 * (k + 1)), (), {}, start, confused=confused)
-            for k in range(max(int(s.n_optima), 1))]
+    return [_fresh_fit(flat, sk, (), {}, start, confused=confused) for sk in _other_seeds(s)]
 
 
 def _refit_terms_frozen(m: ExtendedModel, flat: Flat, s: Settings, seed_offset: int) -> None:
@@ -1437,7 +1442,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _log(s, f"{effect:18s} {flat.joints[j]:9s} its warm refit failed rule 1 or 2; from scratch est {est:.4g} "
                     f"ci [{ci[0]:.3g}, {ci[1]:.3g}], {record['why']} ({_gci(gf)}): fails ({time.time() - t1:.0f} s)")
             return
-        pr = paired(key, init, m)
+        pr = paired(key, init, m, (u_f, e_f))
         ests = [float(mk.estimate(effect, j)) for mk in pr["models"]]
         passes = bool(pr["passes"] and pr["user_gain"] > 0)
         record.update(passes=passes, user_gain=pr["user_gain"], user_gain_by_seed=pr["user_gain_by_seed"],
@@ -1505,8 +1510,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     results = []
     fitted = {}
     fresh_fits: dict = {}       # ((effect, joint) tuples, recipe) -> model fitted from scratch (`_fresh_fit`)
-    optimum_twins: dict = {}    # recipe -> what `optima` returns (fitted and evaluated once per recipe)
-    optimum_errors: dict = {}   # recipe -> the twins' own (user, decision) held-out errors, seed by seed
+    # recipe -> what `optima` returns, and the twins' own (user, decision) held-out errors seed by seed (`paired`);
+    # fitted and evaluated once per recipe
+    optimum_twins: dict = {}
     paired_results: dict = {}   # terms -> their paired comparison over seeds (`paired`)
 
     def fresh(key: tuple, init: dict, recipe: tuple | None = None) -> ExtendedModel:
@@ -1528,25 +1534,26 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             u_0, e_0 = (e_ref_user, e_ref) if not conf else held_errors(fresh((), {}, recipe=key))
             others = [held_errors(m) for m in _optimum_twins(flat, s, base_start, conf)]
             twins = [e_0 - e_k for _, e_k in others]
-            optimum_twins[conf] = (u_0, e_0, twins)
-            optimum_errors[conf] = others
+            optimum_twins[conf] = (u_0, e_0, twins, others)
             _log(s, "noise between optima: the term-free base fitted from scratch at other minibatch seeds"
                     f"{' (the delay recipe)' if conf else ''} differs from the one judged against by "
                     + ", ".join(f"{d.mean():.3g}" for d in twins)
                     + f" ({scale}, mean held-out difference; {time.time() - t1:.0f} s)")
-        return optimum_twins[conf]
+        return optimum_twins[conf][:3]
 
-    def paired(key: tuple, init: dict, first: ExtendedModel) -> dict:
+    def paired(key: tuple, init: dict, first: ExtendedModel, first_errors: tuple) -> dict:
         """The terms `key` fitted from scratch at the seeds of the optimum twins too (`first`: the fit at the
-        reference's seed), each paired with the term-free base of its seed: `_paired_confirm` at 97.5 % (the
-        extended model's level, step 7), with the user's gain of the fit at the reference's seed beside it. Kept
-        per key: step 7 judges a set of terms whose paired comparison exists by it."""
+        reference's seed, `first_errors` its held-out errors), each paired with the term-free base of its seed:
+        `_paired_confirm` at 97.5 % (the extended model's level, step 7), with the user's gain of the fit at the
+        reference's seed beside it. Kept per key: step 7 judges a set of terms whose paired comparison exists
+        by it."""
         conf = _inertia_recipe(key)
         u_0, e_0, _ = optima(key)
-        u_f, e_f = held_errors(first)
+        others = optimum_twins[conf][3]     # the twins' own held-out errors, in the order of `_other_seeds`
+        u_f, e_f = first_errors
         pairs, users, models = [(e_0, e_f)], [(u_0, u_f)], [first]
-        for k, (u_k, e_k) in enumerate(optimum_errors[conf]):
-            m_k = _fresh_fit(flat, replace(s, seed=s.seed + 1000 * (k + 1)), key, init, base_start, confused=conf)
+        for sk, (u_k, e_k) in zip(_other_seeds(s), others):
+            m_k = _fresh_fit(flat, sk, key, init, base_start, confused=conf)
             u_t, e_t = held_errors(m_k)
             pairs.append((e_k, e_t))
             users.append((u_k, u_t))
