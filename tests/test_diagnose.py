@@ -273,7 +273,9 @@ def _train_run(tmp_path, root, epochs: int, hidden: int, threads: int):
 @pytest.mark.heavy
 def test_cli_diagnose_with_a_trained_run(tmp_path):
     """`exolan diagnose DATA --model RUN --out DIR`: a trained ExoLaN run (TCN context, pooled per trial) is
-    the base; the report says so and is complete. Bad options fail with a clear message."""
+    the base; the report says so and is complete; the options reach the settings. Bad options fail with a clear
+    message. `--computed-gain-limit --no-rescue` keep this test short (the gain's injection and a clean world's
+    rescue, 67 s and 134 s of its 279 s, measured; both run in `test_clean_world_finds_nothing`)."""
     import subprocess
     import sys
 
@@ -282,13 +284,16 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     out = tmp_path / "diag"
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "diagnose", str(root), "--model", str(run), "--out",
                         str(out), "--quick", "--effects", "viscous_damping,coulomb_friction,encoder_offset",
-                        "--unweighted"],
+                        "--unweighted", "--computed-gain-limit", "--no-rescue"],
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "report:" in r.stdout
     j = json.loads((out / "diagnosis.json").read_text())
     assert j["baseline"]["source"].startswith("given model") and j["settings"]["weighted"] is False
     assert "adapted to the data's training segments" in j["baseline"]["source"] and j["settings"]["adapt_model"]
+    assert j["settings"]["rescue"] is False and j["settings"]["inject_gain"] is False
+    assert all("method" not in v for v in j["detection_limits"]["torque_gain"].values())
+    assert not any("from_scratch" in e for e in j["findings"] + j["rejected"])
     tested = {(e["effect"], e["joint"]) for e in j["findings"] + j["rejected"]}
     assert {("viscous_damping", "hip"), ("coulomb_friction", "knee"), ("encoder_offset", "hip")} <= tested
     assert not any(e["effect"] == "actuation_delay" for e in j["findings"] + j["rejected"])
@@ -296,6 +301,9 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "diagnose", str(root), "--out", str(tmp_path / "x"),
                         "--effects", "viscous_damping,warp_drive"], capture_output=True, text=True)
     assert r.returncode != 0 and "warp_drive" in (r.stderr + r.stdout)
+    r = subprocess.run([sys.executable, "-m", "exolan.cli", "diagnose", str(root), "--out", str(tmp_path / "x"),
+                        "--paired-seeds", "0"], capture_output=True, text=True)
+    assert r.returncode != 0 and "--paired-seeds must be at least 1" in (r.stderr + r.stdout)
 
 
 @pytest.mark.slow

@@ -616,8 +616,8 @@ def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, mo
 def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_and_judged_paired(
         tmp_path, monkeypatch):
     """Rescue (step 2): where a friction's warm refit fails rule 2 (forced here), the term is fitted from scratch
-    at the reference's seed and at the optimum twins' seeds, each fit paired with the term-free base of its seed
-    (`_paired_confirm`, 97.5 %). When that passes (forced), the fit at the reference's seed stands in for the
+    at the reference's seed and at `n_paired` other seeds (the optimum twins' first, the term-free base fitted at
+    the rest once), each fit paired with the term-free base of its seed (`_paired_confirm`, 97.5 %). When that passes (forced), the fit at the reference's seed stands in for the
     candidate: its estimate, its gains and the extended model (the same cached fit, confirmed by the same paired
     comparison), the warm fit kept beside it; when it fails, the candidate stays rejected with the comparison
     on record."""
@@ -639,7 +639,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
 
     monkeypatch.setattr(P, "_fresh_fit", fresh)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
-    K = Settings().n_optima + 1
+    K = Settings().n_paired + 1
     for verdict in (True, False):
         def paired(pairs, groups, kind, s, alpha):
             g = real_paired(pairs, groups, kind, s, alpha)
@@ -650,9 +650,13 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         seen.clear(), fits.clear()
         rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60,
                        effects=("viscous_damping", "coulomb_friction"), verbose=False)
-        # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison
-        assert [f[:2] for f in fits if not f[0]] == [((), 1000 * k) for k in range(1, K)]
         tried = {e["effect"]: e for e in rep["findings"] + rep["rejected"] if "from_scratch" in e}
+        # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison, and at
+        # the paired comparison's further seeds once when one is made
+        n_free = Settings().n_optima
+        if any("decision_gain" in e["from_scratch"] for e in tried.values()):
+            n_free = max(n_free, K - 1)
+        assert [f[:2] for f in fits if not f[0]] == [((), 1000 * k) for k in range(1, n_free + 1)]
         assert "viscous_damping" in tried and seen and all(c["alpha"] == 0.025 for c in seen)
         for c in seen:
             # every seed's term-free fit paired with the fit with the term at that seed
@@ -682,6 +686,15 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         md = (tmp_path / "True" / "diagnosis.md").read_text()
         assert "(warm start) failed rule 1 or 2" in md and "each paired with the term-free fit of its seed" in md
         assert f"its noise: the spread of the paired gains over {K} seeds" in md
+
+
+def test_settings_without_a_second_seed_are_refused():
+    """The noise between optima needs a twin, a paired comparison a second seed: 0 is a clear error, not a
+    comparison silently made against nothing."""
+    for name in ("n_optima", "n_paired"):
+        with pytest.raises(ValueError, match=name):
+            Settings(**{name: 0})
+    assert Settings(n_optima=1, n_paired=1).n_paired == 1
 
 
 def test_the_paired_comparison_over_seeds_needs_every_seed_and_measures_their_spread():

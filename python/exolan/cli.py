@@ -136,6 +136,9 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--optima", type=int, default=None, metavar="N",
                    help="term-free fits from scratch at N other seeds that measure the noise between optima, against "
                         "which every fit from scratch is judged (default 2; at least 1)")
+    p.add_argument("--paired-seeds", type=int, default=None, metavar="N",
+                   help="a rescued friction is fitted from scratch at N other seeds too, each compared with the "
+                        "term-free fit of its seed (default 4: five seeds in all; at least 1)")
     p.add_argument("--measured-delay-limit", action="store_true",
                    help="also measure the actuation delay's detection limit by writing a known delay into the data "
                         "(in the gain's injection fit; confounded where the data hold a delay already)")

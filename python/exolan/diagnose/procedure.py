@@ -104,10 +104,11 @@ pairs its fits seed by seed instead), and a task where the optima differ much co
 **Rescue from scratch.** A friction (damping, Coulomb, Stribeck: not exo-driven, shared by the subjects) whose
 screen asked for it and whose warm refit identified it (rule 4) but failed rule 1 or 2 is fitted from scratch:
 a warm start keeps what the base absorbed of a dissipation, and the base can absorb most of it. It is fitted at
-the reference's seed and at the `n_optima` seeds of the term-free twins, and each fit is compared with the
-term-free base of its own seed (a **paired design**, `_paired_confirm`): two fits that share their minibatches
-differ by far less than two independent optima, so the seeds' mean paired gain, beyond the spread of the
-paired gains over seeds and with every seed's gain above 0, decides at the extended model's level (97.5 %).
+the reference's seed and at `n_paired` other seeds (those of the term-free twins first), and each fit is
+compared with the term-free base of its own seed (a **paired design**, `_paired_confirm`): two fits that share
+their minibatches differ by far less than two independent optima, so the seeds' mean paired gain, beyond the
+spread of the paired gains over seeds and with every seed's gain above 0, decides at the extended model's level
+(97.5 %).
 Where that passes, the fit at the reference's seed
 stands for the candidate in the later rules (`warm_fit` keeps the warm one). The
 extended model's held-out torque MSE and rollout errors are compared with the reference's, paired, with
@@ -162,6 +163,7 @@ class Settings:
     n_boot: int = 1000
     n_twins: int = 3            # reference refits with other minibatch orders: the refit noise σ_r
     n_optima: int = 2           # term-free fits from scratch at other seeds: the noise between optima (`run`)
+    n_paired: int = 4           # the rescue's paired comparison: fits at this many other seeds too, K = 1 + n_paired
     rescue: bool = True         # a friction whose warm refit fails rule 1 or 2 is fitted from scratch (`run`)
     average: bool = True        # refits end on their Polyak-averaged weights (fit.train): 4x less refit noise
     w_acc: float = 0.1          # weight of the acceleration error H⁻¹(τ − τ̂) in every fit (fit.train)
@@ -179,6 +181,12 @@ class Settings:
     inject_gain: bool = True    # the gain's detection limit by injection and recovery (`limits_by_injection`), not computed
     inject_delay: bool = False  # the same for the actuation delay's (off: a delay already in the data confounds it)
     verbose: bool = True
+
+    def __post_init__(self):
+        # the noise between optima needs a twin, and a paired comparison a second seed to measure its spread
+        for name in ("n_optima", "n_paired"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"Settings.{name} must be at least 1, got {getattr(self, name)}")
 
 
 def _log(s: Settings, msg: str):
@@ -1074,8 +1082,8 @@ def _paired_confirm(pairs: list, groups: np.ndarray, kind: str, s: Settings, alp
     samples' is the spread of the K paired gains, passed to `_confirm` as twins (the deviations from their mean
     over √(K − 1), whose RMS of means is the SE of the seeds' mean, per task and in any combination); tasks are
     combined 1/SD as there, the bound normal at level 1 − alpha. And every seed's own gain (in the same
-    combination) must lie above 0: with K = 3 the spread has two degrees of freedom, so the normal bound alone
-    would trust an SD that happened to come out small.
+    combination) must lie above 0: the spread has K − 1 degrees of freedom (two with three seeds), so the normal
+    bound alone would trust an SD that happened to come out small.
 
     Why paired: a term changes every gradient from the first step, so a fit with it and the term-free fit land
     in different optima; judged against term-free fits at other seeds (`_optimum_twins`), the noise is that of
@@ -1247,15 +1255,18 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     return m
 
 
-def _other_seeds(s: Settings) -> list[Settings]:
-    """The settings of the `Settings.n_optima` other minibatch seeds (s + 1000 k): those of the optimum twins,
-    and of the fits with terms that a paired comparison sets beside them seed by seed (`run`'s `paired`)."""
-    return [replace(s, seed=s.seed + 1000 * (k + 1)) for k in range(max(int(s.n_optima), 1))]
+def _other_seeds(s: Settings, n: int | None = None) -> list[Settings]:
+    """The settings of n (default `Settings.n_optima`) other minibatch seeds, s + 1000 k for k = 1..n: the
+    first `n_optima` are those of the optimum twins; the paired comparison (`run`'s `paired`) sets fits with
+    terms beside term-free fits seed by seed on the first `n_paired`."""
+    n = s.n_optima if n is None else n
+    return [replace(s, seed=s.seed + 1000 * (k + 1)) for k in range(max(int(n), 1))]
 
 
-def _optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bool) -> list[ExtendedModel]:
+def _optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bool,
+                   seeds: list[Settings] | None = None) -> list[ExtendedModel]:
     """The term-free base fitted from scratch (`_fresh_fit`, recipe `confused`) at `Settings.n_optima` other
-    minibatch seeds: the optima that a fit from scratch lands in by chance.
+    minibatch seeds (or at the settings `seeds`): the optima that a fit from scratch lands in by chance.
 
     A model with a term fitted from scratch is judged against the term-free base fitted with the same seed and
     recipe, but the term changes every gradient from the first step, so the two end in different optima: their
@@ -1266,7 +1277,7 @@ def _optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bo
     tosses, and by 9.9e-5 and 1.8e-4 with the tasks combined (`_balanced`); the damping fitted from scratch
     (1.58) gained 8.0e-4 pooled and 4.4e-4 [2.7e-4, 6.2e-4] combined, in every task. Their differences to the
     base judged against are the `twins` of `_confirm` for every comparison of a fit from scratch with it."""
-    return [_fresh_fit(flat, sk, (), {}, start, confused=confused) for sk in _other_seeds(s)]
+    return [_fresh_fit(flat, sk, (), {}, start, confused=confused) for sk in (seeds or _other_seeds(s))]
 
 
 def _refit_terms_frozen(m: ExtendedModel, flat: Flat, s: Settings, seed_offset: int) -> None:
@@ -1449,7 +1460,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                       estimates_by_seed=ests, decision_gain=dict(
             gain=pr["gain"], ci=pr["ci"], level=pr["level"], combination=pr["combination"], pooled=pr["pooled"],
             design=pr["design"], seeds=pr["seeds"], gain_by_seed=pr["gain_by_seed"],
-            noise_between_seeds=pr.get("refit_sd"), above_noise=pr["passes"], scale=scale))
+            noise_between_seeds=pr.get("refit_sd"), above_noise=pr["passes"], passes_bound=pr["passes_bound"],
+            scale=scale))
         _log(s, f"{effect:18s} {flat.joints[j]:9s} its warm refit failed rule 1 or 2; from scratch est "
                 + ", ".join(f"{v:.4g}" for v in ests) + f" at {pr['seeds']} seeds, paired gain {_gci(pr)} at "
                 f"{100 * pr['level']:.1f} % ({pr['combination']}; by seed "
@@ -1542,17 +1554,23 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         return optimum_twins[conf][:3]
 
     def paired(key: tuple, init: dict, first: ExtendedModel, first_errors: tuple) -> dict:
-        """The terms `key` fitted from scratch at the seeds of the optimum twins too (`first`: the fit at the
-        reference's seed, `first_errors` its held-out errors), each paired with the term-free base of its seed:
-        `_paired_confirm` at 97.5 % (the extended model's level, step 7), with the user's gain of the fit at the
-        reference's seed beside it. Kept per key: step 7 judges a set of terms whose paired comparison exists
-        by it."""
+        """The terms `key` fitted from scratch at `Settings.n_paired` other seeds too (`first`: the fit at the
+        reference's seed, `first_errors` its held-out errors), each paired with the term-free base of its seed
+        (the optimum twins', fitted further where n_paired > n_optima, once per recipe): `_paired_confirm` at
+        97.5 % (the extended model's level, step 7), with the user's gain of the fit at the reference's seed
+        beside it. Kept per key: step 7 judges a set of terms whose paired comparison exists by it."""
         conf = _inertia_recipe(key)
         u_0, e_0, _ = optima(key)
-        others = optimum_twins[conf][3]     # the twins' own held-out errors, in the order of `_other_seeds`
+        seeds = _other_seeds(s, s.n_paired)
+        others = optimum_twins[conf][3]     # the term-free fits' own held-out errors, in the order of `_other_seeds`
+        if len(others) < len(seeds):
+            t1 = time.time()
+            others += [held_errors(m) for m in _optimum_twins(flat, s, base_start, conf, seeds[len(others):])]
+            _log(s, f"the term-free base fitted from scratch at {len(seeds) - s.n_optima} more seeds for the paired "
+                    f"comparison ({time.time() - t1:.0f} s)")
         u_f, e_f = first_errors
         pairs, users, models = [(e_0, e_f)], [(u_0, u_f)], [first]
-        for sk, (u_k, e_k) in zip(_other_seeds(s), others):
+        for sk, (u_k, e_k) in zip(seeds, others):
             m_k = _fresh_fit(flat, sk, key, init, base_start, confused=conf)
             u_t, e_t = held_errors(m_k)
             pairs.append((e_k, e_t))
@@ -1787,10 +1805,11 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     why.append(f"fitted from scratch ({fs['estimate']:.4g}) {fs['why']} ({cs['gain']:.3g} "
                                f"[{cs['ci'][0]:.3g}, {cs['ci'][1]:.3g}], {cs['combination']})")
                 else:
-                    fails = ([] if dg["above_noise"] else [
+                    by_seed = "by seed " + ", ".join(f"{v:.3g}" for v in dg["gain_by_seed"])
+                    fails = ([] if dg.get("passes_bound", dg["above_noise"]) else [
                         f"not beyond the spread of the paired gains over {dg['seeds']} seeds "
-                        f"({dg['noise_between_seeds']:.3g}) with every seed's gain above 0 (by seed "
-                        + ", ".join(f"{v:.3g}" for v in dg["gain_by_seed"]) + ")"]) + \
+                        f"({dg['noise_between_seeds']:.3g}; {by_seed})"]) + \
+                        ([] if min(dg["gain_by_seed"]) > 0 else [f"not every seed gains ({by_seed})"]) + \
                         ([] if fs["user_gain"] > 0 else ["the user's torque error grows"])
                     why.append(f"fitted from scratch ({fs['estimate']:.4g}) it gains {dg['gain']:.3g} "
                                f"[{dg['ci'][0]:.3g}, {dg['ci'][1]:.3g}] paired over seeds ({dg['combination']}, "
