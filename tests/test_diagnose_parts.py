@@ -617,7 +617,8 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         tmp_path, monkeypatch):
     """Rescue (step 2): where a friction's warm refit fails rule 2 (forced here), the term is fitted from scratch
     at the reference's seed and at `n_paired` other seeds (the optimum twins' first, the term-free base fitted at
-    the rest once), each fit paired with the term-free base of its seed (`_paired_confirm`, 97.5 %). When that passes (forced), the fit at the reference's seed stands in for the
+    the rest once), each fit paired with the term-free base of its seed (`_paired_confirm`, 97.5 %). When that
+    passes (forced), the fit at the reference's seed stands in for the
     candidate: its estimate, its gains and the extended model (the same cached fit, confirmed by the same paired
     comparison), the warm fit kept beside it; when it fails, the candidate stays rejected with the comparison
     on record."""

@@ -1260,7 +1260,7 @@ def _other_seeds(s: Settings, n: int | None = None) -> list[Settings]:
     first `n_optima` are those of the optimum twins; the paired comparison (`run`'s `paired`) sets fits with
     terms beside term-free fits seed by seed on the first `n_paired`."""
     n = s.n_optima if n is None else n
-    return [replace(s, seed=s.seed + 1000 * (k + 1)) for k in range(max(int(n), 1))]
+    return [replace(s, seed=s.seed + 1000 * (k + 1)) for k in range(int(n))]     # n >= 1: Settings checks it
 
 
 def _optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bool,
@@ -1566,9 +1566,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         seeds = _other_seeds(s, s.n_paired)
         others = optimum_twins[conf][3]     # the term-free fits' own held-out errors, in the order of `_other_seeds`
         if len(others) < len(seeds):
-            t1 = time.time()
+            t1, n_more = time.time(), len(seeds) - len(others)
             others += [held_errors(m) for m in _optimum_twins(flat, s, base_start, conf, seeds[len(others):])]
-            _log(s, f"the term-free base fitted from scratch at {len(seeds) - s.n_optima} more seeds for the paired "
+            _log(s, f"the term-free base fitted from scratch at {n_more} more seeds for the paired "
                     f"comparison ({time.time() - t1:.0f} s)")
         u_f, e_f = first_errors
         pairs, users, models = [(e_0, e_f)], [(u_0, u_f)], [first]
@@ -1808,7 +1808,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                                f"[{cs['ci'][0]:.3g}, {cs['ci'][1]:.3g}], {cs['combination']})")
                 else:
                     by_seed = "by seed " + ", ".join(f"{v:.3g}" for v in dg["gain_by_seed"])
-                    fails = ([] if dg.get("passes_bound", dg["above_noise"]) else [
+                    fails = ([] if dg["passes_bound"] else [
                         f"not beyond the spread of the paired gains over {dg['seeds']} seeds "
                         f"({dg['noise_between_seeds']:.3g}; {by_seed})"]) + \
                         ([] if min(dg["gain_by_seed"]) > 0 else [f"not every seed gains ({by_seed})"]) + \
