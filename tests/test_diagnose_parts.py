@@ -626,7 +626,19 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
-    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: False)
+    # rule 2 fails the warm refits (forced); a rescued term's own share is judged by the real floor
+    real_above, real_share, sharing = P._above_noise, P._term_share, []
+    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05:
+                        bool(sharing) and real_above(g, sigma, seed, alpha))
+
+    def term_share(*a, **k):
+        sharing.append(True)
+        try:
+            return real_share(*a, **k)
+        finally:
+            sharing.pop()
+
+    monkeypatch.setattr(P, "_term_share", term_share)
     monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
     spread = P._spread
     monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
@@ -676,6 +688,9 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         (f,) = rep["findings"]
         assert f["effect"] == "viscous_damping" and f["decision_gain"]["fitted"] == "from scratch"
         assert f["decision_gain"]["seeds"] == K and f["decision_gain"]["design"] == "paired over minibatch seeds"
+        # a damping of 8 in the data: switched off, the term costs its fit far more than a refit's noise
+        shares = f["decision_gain"]
+        assert shares["terms_share"]["passes_floor"] and len(shares["terms_share"]["pooled_by_seed"]) == K
         assert f["estimate"] == pytest.approx(f["from_scratch"]["estimate"], rel=1e-6)
         assert f["from_scratch"]["estimates_by_seed"][0] == pytest.approx(f["estimate"], rel=1e-6)
         assert f["warm_fit"]["estimate"] != f["estimate"] and f["warm_start"].startswith("none")
@@ -687,6 +702,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         md = (tmp_path / "True" / "diagnosis.md").read_text()
         assert "(warm start) failed rule 1 or 2" in md and "each paired with the term-free fit of its seed" in md
         assert f"its noise: the spread of the paired gains over {K} seeds" in md
+        assert "switched off, the term costs its fit" in md and "its own share, beyond the refit noise" in md
 
 
 def test_settings_without_a_second_seed_are_refused():
@@ -728,6 +744,21 @@ def test_the_paired_comparison_over_seeds_needs_every_seed_and_measures_their_sp
     pooled = _paired_confirm(pairs_with([0.010, 0.012, 0.011]), groups, "none", s, 0.025)
     assert pooled["passes"] and pooled["combination"] == "pooled"
     assert pooled["refit_sd"] == pytest.approx(np.std(pooled["gain_by_seed"], ddof=1) / np.sqrt(3), rel=1e-6)
+
+
+def test_a_terms_own_share_must_clear_the_refit_noise_floor():
+    """`_term_share`: what a model's terms alone are worth to it (the model with them switched off against the
+    model) is judged as rule 2 judges a warm refit's gain: a steady share well inside the refit noise σ_r fails
+    however narrow its sampling interval, the same share far above σ_r passes."""
+    from exolan.diagnose.procedure import _term_share
+
+    rng = np.random.default_rng(4)
+    s = Settings(n_boot=200)
+    e_with = 0.002 * (1.0 + 0.1 * rng.standard_normal(8000)) ** 2
+    off = e_with + 1.2e-5 + 1e-6 * rng.standard_normal(8000)
+    small = _term_share(off, e_with, 7.5e-6, s)
+    assert small["gain"] == pytest.approx(1.2e-5, rel=0.05) and small["ci"][0] > 0 and not small["passes_floor"]
+    assert _term_share(off, e_with, 1e-6, s)["passes_floor"] and small["refit_noise"] == 7.5e-6
 
 
 def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path, monkeypatch):

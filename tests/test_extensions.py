@@ -279,6 +279,22 @@ def test_set_value_writes_a_physical_parameter():
         ext.set_value("actuation_delay", 1, 0.01)
 
 
+def test_without_switches_terms_off_and_keeps_the_rest_as_fitted():
+    """`without`: a copy with the named terms neutral (friction 0, gain k = 1), every other term and the base
+    as they were, the model itself untouched; a term the model lacks is an error, not a silent no-op."""
+    ext = ExtendedModel(_base(), 2, [("viscous_damping", 0), ("coulomb_friction", 1), ("torque_gain", 1)],
+                        dt=0.005, init={"viscous_damping": 1.5, "coulomb_friction": 2.0, "torque_gain": 1.4})
+    qd = torch.tensor([[1.0, -2.0]], dtype=torch.float64)
+    off = ext.without([("coulomb_friction", 1), ("torque_gain", 1)])
+    f, f_off = ext.friction(qd).detach(), off.friction(qd).detach()
+    assert f_off[0, 1] == 0 and f[0, 1] == pytest.approx(-2.0, rel=1e-6)
+    assert f_off[0, 0] == pytest.approx(1.5, rel=1e-6)
+    assert off.estimate("torque_gain", 1) == pytest.approx(1.0) and ext.estimate("torque_gain", 1) == pytest.approx(1.4)
+    assert all(torch.equal(a, b) for a, b in zip(off.base.state_dict().values(), ext.base.state_dict().values()))
+    with pytest.raises(ValueError, match="no 'coulomb_friction' term on joint 0"):
+        ext.without([("coulomb_friction", 0)])
+
+
 def test_ext_tensors_follow_the_design_names_and_shapes():
     base = _base()
     ext = ExtendedModel(base, 2, [("viscous_damping", 1), ("coulomb_friction", 0), ("stribeck_friction", 0),

@@ -26,6 +26,7 @@ needs τ̇_e and τ̈_e, which the caller passes in the same form (`exo_derivati
 """
 from __future__ import annotations
 
+import copy
 import math
 from typing import Iterable, Sequence
 
@@ -410,6 +411,16 @@ class ExtendedModel(nn.Module):
                 "torque_gain": (1.0 / (1.0 - a)).cpu().numpy().copy(),
                 "strap_compliance": _stiffness(c.cpu().numpy()),
             }
+
+    def without(self, terms: Iterable[tuple[str, int]]) -> "ExtendedModel":
+        """A copy with the terms (effect, joint) switched off (their masks 0: every term is then neutral, a gain
+        k = 1, a delay 0), the rest of the model as fitted: what the model owes to those terms alone."""
+        out = copy.deepcopy(self)
+        for effect, j in terms:
+            if int(j) not in self.effects.get(effect, []):
+                raise ValueError(f"without: the model has no {effect!r} term on joint {j}")
+            getattr(out, f"mask_{effect}")[int(j)] = 0.0
+        return out
 
     def estimate(self, effect: str, joint: int) -> float:
         """The scalar parameter that the vocabulary reports for (effect, joint)."""

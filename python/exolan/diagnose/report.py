@@ -440,6 +440,11 @@ def markdown(rep: dict) -> str:
                             f"spread of the paired gains {_fmt(dg.get('noise_between_seeds'), 3)}, by seed "
                             f"{_fmt(dg.get('gain_by_seed'), 3)})"
                             if dg.get("fitted") == "from scratch" else ""))
+            share = (dg or {}).get("terms_share")
+            if share:
+                L.append(f"  - switched off, the term costs its fit {_fmt(share['gain'], 3)} CI "
+                         f"{_fmt(share['ci'], 3)}: its own share, beyond the refit noise σ_r "
+                         f"{_fmt(share['refit_noise'], 3)} (rule 2)")
             wf = f.get("warm_fit")
             if wf:
                 wg = wf["decision_gain"]
