@@ -303,7 +303,7 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
     assert r.returncode != 0 and "warp_drive" in (r.stderr + r.stdout)
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "diagnose", str(root), "--out", str(tmp_path / "x"),
                         "--paired-seeds", "0"], capture_output=True, text=True)
-    assert r.returncode != 0 and "--paired-seeds must be at least 1" in (r.stderr + r.stdout)
+    assert r.returncode != 0 and "argument --paired-seeds: must be at least 1" in (r.stderr + r.stdout)
 
 
 @pytest.mark.slow

@@ -1451,7 +1451,7 @@ def test_rollouts_of_a_gated_term_follow_each_starts_trial():
     assert not np.allclose(e_w[:3], e_b[:3])
 
 
-def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch):
+def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch, capsys):
     """`exolan diagnose`'s switches set real `Settings` fields (none silently ignored)."""
     import dataclasses
 
@@ -1463,12 +1463,16 @@ def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch):
                         {"findings": []})
     assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--computed-gain-limit", "--unweighted",
                  "--measured-delay-limit", "--no-adapt-model", "--no-lim-cop", "--no-pelvis-surge", "--pelvis-tilt",
-                 "--seed", "3", "--no-rescue", "--optima", "3"]) == 0
+                 "--seed", "3", "--no-rescue", "--optima", "3", "--paired-seeds", "2"]) == 0
     assert seen == dict(inject_gain=False, inject_delay=True, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
-                        pelvis_tilt=True, seed=3, rescue=False, n_optima=3)
+                        pelvis_tilt=True, seed=3, rescue=False, n_optima=3, n_paired=2)
     assert set(seen) <= {f.name for f in dataclasses.fields(D.Settings)}
-    with pytest.raises(SystemExit, match="at least 1"):
-        main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--optima", "0"])
+    for flag, bad in (("--optima", "0"), ("--paired-seeds", "-1"), ("--optima", "two")):
+        with pytest.raises(SystemExit) as exc:      # refused while parsing, before any data is read
+            main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), flag, bad])
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert f"argument {flag}:" in err and ("at least 1" in err or "expected an integer" in err), err
 
 
 def test_the_reports_limits_table_says_none_where_no_gain_shows_and_lists_each_injection():

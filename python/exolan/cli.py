@@ -14,6 +14,17 @@ import sys
 
 from . import __version__
 
+def _at_least_one(text: str) -> int:
+    """argparse type: an integer >= 1 (a count of seeds or fits), refused while the arguments are parsed."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}")
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
+
+
 # subcommand -> "module:function"; the function takes the parsed argparse.Namespace
 _HANDLERS = {
     "doctor": "exolan.cli:doctor",
@@ -133,12 +144,12 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-rescue", action="store_true",
                    help="do not fit a friction from scratch where its warm refit fails the gain rules (saves a base "
                         "fit per such friction, and the term-free fits below when nothing else needs them)")
-    p.add_argument("--optima", type=int, default=None, metavar="N",
+    p.add_argument("--optima", type=_at_least_one, default=None, metavar="N",
                    help="term-free fits from scratch at N other seeds that measure the noise between optima, against "
-                        "which every fit from scratch is judged (default 2; at least 1)")
-    p.add_argument("--paired-seeds", type=int, default=None, metavar="N",
+                        "which every fit from scratch is judged (default 2; at least 1: the noise needs a twin)")
+    p.add_argument("--paired-seeds", type=_at_least_one, default=None, metavar="N",
                    help="a rescued friction is fitted from scratch at N other seeds too, each compared with the "
-                        "term-free fit of its seed (default 4: five seeds in all; at least 1)")
+                        "term-free fit of its seed (default 4: five seeds in all; at least 1: a spread needs two seeds)")
     p.add_argument("--measured-delay-limit", action="store_true",
                    help="also measure the actuation delay's detection limit by writing a known delay into the data "
                         "(in the gain's injection fit; confounded where the data hold a delay already)")

@@ -155,12 +155,8 @@ def cli_diagnose(args) -> int:
     if getattr(args, "no_rescue", False):
         settings["rescue"] = False
     if getattr(args, "optima", None) is not None:
-        if args.optima < 1:
-            raise SystemExit("exolan diagnose: --optima must be at least 1 (the noise between optima needs a twin)")
         settings["n_optima"] = args.optima
     if getattr(args, "paired_seeds", None) is not None:
-        if args.paired_seeds < 1:
-            raise SystemExit("exolan diagnose: --paired-seeds must be at least 1 (a paired comparison needs two seeds)")
         settings["n_paired"] = args.paired_seeds
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
