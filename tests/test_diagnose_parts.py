@@ -621,7 +621,8 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
     passes (forced), the fit at the reference's seed stands in for the
     candidate: its estimate, its gains and the extended model (the same cached fit, confirmed by the same paired
     comparison), the warm fit kept beside it; when it fails, the candidate stays rejected with the comparison
-    on record."""
+    on record. Where the term's own share of its fit at the reference's seed fails the floor (forced), no other
+    seed is fitted."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
@@ -634,9 +635,10 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
     def term_share(*a, **k):
         sharing.append(True)
         try:
-            return real_share(*a, **k)
+            out = real_share(*a, **k)
         finally:
             sharing.pop()
+        return dict(out, passes_floor=False) if verdict == "share" else out
 
     monkeypatch.setattr(P, "_term_share", term_share)
     monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
@@ -653,7 +655,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
     monkeypatch.setattr(P, "_fresh_fit", fresh)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
     K = Settings().n_paired + 1
-    for verdict in (True, False):
+    for verdict in (True, False, "share"):
         def paired(pairs, groups, kind, s, alpha):
             g = real_paired(pairs, groups, kind, s, alpha)
             seen.append(dict(alpha=alpha, pairs=pairs, g=g))
@@ -670,7 +672,19 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         if any("decision_gain" in e["from_scratch"] for e in tried.values()):
             n_free = max(n_free, K - 1)
         assert [f[:2] for f in fits if not f[0]] == [((), 1000 * k) for k in range(1, n_free + 1)]
-        assert "viscous_damping" in tried and seen and all(c["alpha"] == 0.025 for c in seen)
+        assert "viscous_damping" in tried and all(c["alpha"] == 0.025 for c in seen)
+        if verdict == "share":
+            # the term's share fails at the reference's seed (forced): no other seed is fitted, no paired comparison
+            assert not seen and rep["findings"] == [] and n_free == Settings().n_optima
+            for eff, e in tried.items():
+                fs = e["from_scratch"]
+                if "terms_share" in fs:
+                    assert not fs["passes"] and "decision_gain" not in fs and "not fitted at the other seeds" in fs["why"]
+                    assert sorted(f[1] for f in fits if f[0] == (eff,)) == [0]
+                    assert "refit noise floor" in e["reason"] and "at the reference's seed" in e["reason"]
+            assert "terms_share" in tried["viscous_damping"]["from_scratch"]
+            continue
+        assert seen
         for c in seen:
             # every seed's term-free fit paired with the fit with the term at that seed
             assert len(c["pairs"]) == K and len(c["g"]["gain_by_seed"]) == K and c["g"]["seeds"] == K
