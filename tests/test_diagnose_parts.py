@@ -428,12 +428,12 @@ def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_del
                                                    .state_dict().values()))   # the start itself is not fitted
 
 
-def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
+def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=None):
     """Diagnose a linear drive (viscous damping planted) for damping and Coulomb friction with rules 2 and 5
     forced open (and the noise bound of the tasks' combined gain, `_balanced`), so that both terms reach forward
     selection. Returns the report and the effect sets fitted from scratch (the term-free fits at other seeds
     that measure the noise between optima among them); `joint_ci(effect, pci)` may replace the parameter CI
-    of a from-scratch fit."""
+    of a from-scratch fit; `coulomb` plants a Coulomb force (N) beside the damping."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
@@ -462,10 +462,51 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None):
             return joint_ci(effect, out) if id(model) in fresh_ids else out
 
         monkeypatch.setattr(P, "_param_ci", changed)
-    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
+    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0, coulomb=coulomb)
     rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
                    effects=("viscous_damping", "coulomb_friction"), verbose=False)
     return rep, fits
+
+
+@pytest.mark.parametrize("verdict", [True, False])
+def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cross_seed_comparison_fails(
+        tmp_path, monkeypatch, verdict):
+    """Forward selection's second try (rules forced open, the cross-seed comparison of the fits from scratch
+    forced to fail): the accepted term alone and with the further one are fitted from scratch at `n_paired` other
+    seeds, paired seed by seed (`_paired_confirm` at 97.5 %, its verdict forced), after the further term's own
+    share of its fit cleared the floor; the report carries both comparisons, and the verdict decides."""
+    import exolan.diagnose.procedure as P
+
+    real_confirm, real_paired, calls = P._confirm, P._paired_confirm, []
+    monkeypatch.setattr(P, "_confirm", lambda *a, **k: dict(real_confirm(*a, **k), passes=False)
+                        if a[5] == 0.05 else real_confirm(*a, **k))
+
+    def paired(pairs, groups, kind, s, alpha):
+        calls.append(dict(alpha=alpha, k=len(pairs)))
+        return dict(real_paired(pairs, groups, kind, s, alpha), passes=verdict)
+
+    monkeypatch.setattr(P, "_paired_confirm", paired)
+    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, coulomb=4.0)   # the further term gains
+    K = Settings().n_paired + 1
+    assert calls == [dict(alpha=0.025, k=K)]
+    everything = rep["findings"] + rep["rejected"]
+    second = [e for e in everything if "conditional_gain" in e]
+    assert len(second) == 1
+    e = second[0]
+    first = next(f for f in rep["findings"] if "conditional_gain" not in f)
+    cg = e["conditional_gain"]["from_scratch"]
+    assert cg["paired"]["seeds"] == K and cg["paired"]["terms_share"]["passes_floor"]
+    assert len(cg["paired"]["gain_by_seed"]) == K and cg["paired"]["passes"] is verdict
+    # the accepted term alone and with the further one, each at the reference's seed and K - 1 more
+    alone = [f for f in fits if [x for x, _ in f] == [first["effect"]]]
+    pair = [f for f in fits if len(f) == 2]
+    assert len(alone) == K and len(pair) == K
+    assert (e["status"] == "accepted") is verdict
+    md = (tmp_path / "diagnosis.md").read_text()
+    assert (f"paired over {K} seeds (each with the fit of the terms before it" in md) is verdict
+    if not verdict:
+        assert e["reason"].startswith("adds nothing on held-out data once")
+        assert rep["extended"]["terms"] == [f"{first['effect']}:x"]
 
 
 def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):

@@ -445,6 +445,21 @@ def markdown(rep: dict) -> str:
                 L.append(f"  - switched off, the term costs its fit {_fmt(share['gain'], 3)} CI "
                          f"{_fmt(share['ci'], 3)}: its own share, beyond the refit noise σ_r "
                          f"{_fmt(share['refit_noise'], 3)} (rule 2)")
+            cg = f.get("conditional_gain")
+            if cg:      # accepted in forward selection: what it adds to the terms accepted before it
+                L.append(f"  - on top of {', '.join(cg['given'])} (warm start): {_fmt(cg['gain'], 3)} CI {_fmt(cg['ci'], 3)}")
+                fs = cg.get("from_scratch")
+                if fs:
+                    L.append(f"  - on top of them, both fitted from scratch: {_fmt(fs['gain'], 3)} CI {_fmt(fs['ci'], 3)} "
+                             f"({fs.get('combination')}, beyond the noise between optima "
+                             f"{_fmt(fs.get('noise_between_optima'), 3)})")
+                    pr = fs.get("paired") or {}
+                    if pr.get("seeds"):
+                        L.append(f"  - paired over {pr['seeds']} seeds (each with the fit of the terms before it at "
+                                 f"that seed): {_fmt(pr['gain'], 3)} CI {_fmt(pr['ci'], 3)} at "
+                                 f"{100 * pr['level']:.1f} %, by seed {_fmt(pr['gain_by_seed'], 3)}; switched off, the "
+                                 f"term costs its fit {_fmt(pr['terms_share']['gain'], 3)} CI "
+                                 f"{_fmt(pr['terms_share']['ci'], 3)} (σ_r {_fmt(pr['terms_share']['refit_noise'], 3)})")
             wf = f.get("warm_fit")
             if wf:
                 wg = wf["decision_gain"]
