@@ -1463,9 +1463,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         world's knee Coulomb friction of 0.078 N m passed the paired comparison and fails this). The warm fit must
         identify the term: unidentified warm fits (0.036 [-0.006, 0.077]) show no effect to rescue (that gate cut
         the rescue's cost there from 143 s to none). Seed 0's fit must gain (its combined gain against the reference
-        above 0) and its share clear the floor before the other seeds are fitted (both are necessary). Frictions only: an exo-driven term's fit from scratch is not
-        identified alone (a torque gain ends where it starts, `_fresh_fit`) and its nulls (rule 3) are warm
-        refits."""
+        above 0) and its share clear the floor before the other seeds are fitted (both are necessary). Frictions
+        only: an exo-driven term's fit from scratch is not identified alone (a torque gain ends where it starts,
+        `_fresh_fit`) and its nulls (rule 3) are warm refits."""
         key = ((effect, j),)
         t1 = time.time()
         init = _screen_init(effect, sc)
