@@ -1282,6 +1282,14 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     return m
 
 
+def _paired_record(pr: dict) -> dict:
+    """What the report keeps of a paired comparison over seeds (`run`'s `paired`)."""
+    return dict(gain=pr["gain"], ci=pr["ci"], level=pr["level"], combination=pr["combination"], pooled=pr["pooled"],
+                design=pr["design"], seeds=pr["seeds"], gain_by_seed=pr["gain_by_seed"],
+                noise_between_seeds=pr.get("refit_sd"), above_noise=pr["passes"], passes_bound=pr["passes_bound"],
+                terms_share=pr["terms_share"])
+
+
 def _other_seeds(s: Settings, n: int | None = None) -> list[Settings]:
     """The settings of n (default `Settings.n_optima`) other minibatch seeds, s + 1000 k for k = 1..n: the
     first `n_optima` are those of the optimum twins; the paired comparison (`run`'s `paired`) sets fits with
@@ -1489,7 +1497,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         # the term's own share of its fit (rule 2's floor, `_term_share`) is necessary for the paired comparison to
         # confirm it and needs no other fit: judged first, it spares the other seeds' fits where it fails (measured,
         # clean world seed 1106, test settings: three rescues, 614 s, every one failing on its share)
-        share = _term_share(held_errors(m.without(key))[1], e_f, sigma_r, s)
+        share = own_share(m, key, e_f)
         if not share["passes_floor"]:
             record.update(passes=False, user_gain=float(np.mean(u_0 - u_f)), terms_share=share,
                           why=f"switched off, the term costs its fit only {_gci(share)}: within the refit noise "
@@ -1503,12 +1511,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         ests = [float(mk.estimate(effect, j)) for mk in pr["models"]]
         passes = pr["confirmed"]
         record.update(passes=passes, user_gain=pr["user_gain"], user_gain_by_seed=pr["user_gain_by_seed"],
-                      estimates_by_seed=ests, decision_gain=dict(
-            gain=pr["gain"], ci=pr["ci"], level=pr["level"], combination=pr["combination"], pooled=pr["pooled"],
-            design=pr["design"], seeds=pr["seeds"], gain_by_seed=pr["gain_by_seed"],
-            noise_between_seeds=pr.get("refit_sd"), above_noise=pr["passes"], passes_bound=pr["passes_bound"],
-            terms_share=pr["terms_share"],
-            scale=scale))
+                      estimates_by_seed=ests, decision_gain=dict(_paired_record(pr), scale=scale))
         _log(s, f"{effect:18s} {flat.joints[j]:9s} its warm refit failed rule 1 or 2; from scratch est "
                 + ", ".join(f"{v:.4g}" for v in ests) + f" at {pr['seeds']} seeds, paired gain {_gci(pr)} at "
                 f"{100 * pr['level']:.1f} % ({pr['combination']}; by seed "
@@ -1600,6 +1603,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     + ", ".join(f"{d.mean():.3g}" for d in twins)
                     + f" ({scale}, mean held-out difference; {time.time() - t1:.0f} s)")
         return optimum_twins[conf][:3]
+
+    def own_share(m: ExtendedModel, terms: tuple, e_with: np.ndarray) -> dict:
+        """`_term_share` of the terms in the fit `m` (`e_with`: its held-out decision errors)."""
+        return _term_share(held_errors(m.without(terms))[1], e_with, sigma_r, s)
 
     def paired(key: tuple, init: dict, first: ExtendedModel, first_errors: tuple, share: dict,
                given: tuple = (), given_errors: tuple | None = None) -> dict:
@@ -1868,12 +1875,10 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                 dg = fs.get("decision_gain")
                 if dg is None:      # stopped at the reference's seed
                     cs = fs["cross_seed"]
-                    why.append(f"fitted from scratch ({fs['estimate']:.4g}) "
-                               + ("" if "terms_share" not in fs else
-                                  f"it gains {cs['gain']:.3g} [{cs['ci'][0]:.3g}, {cs['ci'][1]:.3g}] at the "
-                                  f"reference's seed ({cs['combination']}), but ") + fs["why"]
-                               + ("" if "terms_share" in fs else
-                                  f" ({cs['gain']:.3g} [{cs['ci'][0]:.3g}, {cs['ci'][1]:.3g}], {cs['combination']})"))
+                    gained = f"{cs['gain']:.3g} [{cs['ci'][0]:.3g}, {cs['ci'][1]:.3g}]"
+                    why.append(f"fitted from scratch ({fs['estimate']:.4g}) " + (
+                        f"it gains {gained} at the reference's seed ({cs['combination']}), but {fs['why']}"
+                        if "terms_share" in fs else f"{fs['why']} ({gained}, {cs['combination']})"))
                 else:
                     by_seed = "by seed " + ", ".join(f"{v:.3g}" for v in dg["gain_by_seed"])
                     fails = ([] if dg["passes_bound"] else [
@@ -2019,19 +2024,16 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                     # delay recipe's noise between optima (its term-free fits at other seeds differed by −8.1e-3
                     # and 2.1e-3) and was missed. Its own share of the fit must clear rule 2's floor first.
                     term = ((e["effect"], jj),)
-                    share = _term_share(held_errors(both_f.without(term))[1], e_both_f, sigma_r, s)
+                    share = own_share(both_f, term, e_both_f)
                     pr = None
                     if share["passes_floor"]:
                         pr = paired(k_both, init, both_f, (u_both_f, e_both_f), share, given=k_cur,
                                     given_errors=(u_cur_f, e_cur_f))
                         invf = invariance(pr["d"], both_f, e["effect"], jj, twins=pr["twins"])
                         passes = pr["confirmed"] and invf["passes"]
-                    e["conditional_gain"]["from_scratch"]["paired"] = dict(
-                        terms_share=share, passes=bool(passes), **({} if pr is None else dict(
-                            gain=pr["gain"], ci=pr["ci"], level=pr["level"], combination=pr["combination"],
-                            seeds=pr["seeds"], gain_by_seed=pr["gain_by_seed"],
-                            noise_between_seeds=pr.get("refit_sd"), passes_bound=pr["passes_bound"],
-                            user_gain=pr["user_gain"], task_invariance=invf)))
+                    second = dict(terms_share=share) if pr is None else dict(
+                        _paired_record(pr), user_gain=pr["user_gain"], task_invariance=invf)
+                    e["conditional_gain"]["from_scratch"]["paired"] = dict(second, passes=bool(passes))
                     _log(s, f"{e['effect']} {e['joint']} on top of {e['conditional_gain']['given']}: switched off, "
                             f"the term costs its fit from scratch {_gci(share)} (σ_r {sigma_r:.3g})" + (
                             ": within the refit noise floor" if pr is None else
