@@ -428,12 +428,12 @@ def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_del
                                                    .state_dict().values()))   # the start itself is not fitted
 
 
-def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=None):
+def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=None, **settings):
     """Diagnose a linear drive (viscous damping planted) for damping and Coulomb friction with rules 2 and 5
     forced open (and the noise bound of the tasks' combined gain, `_balanced`), so that both terms reach forward
     selection. Returns the report and the effect sets fitted from scratch (the term-free fits at other seeds
     that measure the noise between optima among them); `joint_ci(effect, pci)` may replace the parameter CI
-    of a from-scratch fit; `coulomb` plants a Coulomb force (N) beside the damping."""
+    of a from-scratch fit; `coulomb` plants a Coulomb force (N) beside the damping; `settings` reach `diagnose`."""
     import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
@@ -464,7 +464,7 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=
         monkeypatch.setattr(P, "_param_ci", changed)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0, coulomb=coulomb)
     rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
-                   effects=("viscous_damping", "coulomb_friction"), verbose=False)
+                   effects=("viscous_damping", "coulomb_friction"), verbose=False, **settings)
     return rep, fits
 
 
@@ -474,21 +474,40 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
     """Forward selection's second try (rules forced open, the cross-seed comparison of the fits from scratch
     forced to fail): the accepted term alone and with the further one are fitted from scratch at `n_paired` other
     seeds, paired seed by seed (`_paired_confirm` at 97.5 %, its verdict forced), after the further term's own
-    share of its fit cleared the floor; the report carries both comparisons, and the verdict decides."""
+    share of its fit cleared the floor; the report carries both comparisons, and the verdict decides. Step 7's
+    fit from scratch, its cross-seed comparison forced to fail with a positive gain, is judged paired over the
+    same seeds too (the verdict forced again): the set so accepted, or the first term alone, each over the fits
+    that forward selection made (none made again; the term-free base fitted at the seeds beyond the optimum
+    twins'). Where that verdict fails, the reference's refit with the terms held there confirms the first term."""
     import exolan.diagnose.procedure as P
 
-    real_confirm, real_paired, calls = P._confirm, P._paired_confirm, []
-    monkeypatch.setattr(P, "_confirm", lambda *a, **k: dict(real_confirm(*a, **k), passes=False)
-                        if a[5] == 0.05 else real_confirm(*a, **k))
+    real_confirm, real_paired, calls, step7, inside = P._confirm, P._paired_confirm, [], [], []
+
+    def confirm(*a, **k):
+        g = real_confirm(*a, **k)
+        if inside:      # `_paired_confirm`'s own use
+            return g
+        if a[5] == 0.025:
+            step7.append(g)
+        if a[5] == 0.05 or len(step7) == 1:     # forward selection's, and step 7's first comparison
+            g = dict(g, passes=False, gain=abs(g["gain"]) + 1e-12)
+        return g
+
+    monkeypatch.setattr(P, "_confirm", confirm)
 
     def paired(pairs, groups, kind, s, alpha):
         calls.append(dict(alpha=alpha, k=len(pairs)))
-        return dict(real_paired(pairs, groups, kind, s, alpha), passes=verdict)
+        inside.append(True)
+        try:
+            return dict(real_paired(pairs, groups, kind, s, alpha), passes=verdict)
+        finally:
+            inside.pop()
 
     monkeypatch.setattr(P, "_paired_confirm", paired)
     rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, coulomb=4.0)   # the further term gains
     K = Settings().n_paired + 1
-    assert calls == [dict(alpha=0.025, k=K)]
+    assert calls == [dict(alpha=0.025, k=K)] * 2
+    assert len(step7) == (1 if verdict else 2)      # the reference's refit with the terms held where it fails
     everything = rep["findings"] + rep["rejected"]
     second = [e for e in everything if "conditional_gain" in e]
     assert len(second) == 1
@@ -502,6 +521,14 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
     pair = [f for f in fits if len(f) == 2]
     assert len(alone) == K and len(pair) == K
     assert (e["status"] == "accepted") is verdict
+    assert len([f for f in fits if not f]) == K - 1
+    cf = rep["extended"]["confirmation"]
+    if verdict:
+        assert sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
+        assert cf["noise"] == f"the spread of the paired gains over {K} seeds" and cf["seeds"] == K
+        assert rep["extended"]["model"].startswith("fitted from scratch with the terms")
+    else:
+        assert cf["noise"] == "twin refits" and rep["extended"]["model"].startswith("the reference's refit")
     md = (tmp_path / "diagnosis.md").read_text()
     assert (f"paired over {K} seeds (each with the fit of the terms before it" in md) is verdict
     if not verdict:
@@ -617,6 +644,54 @@ def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_refe
     amb = [e for e in rep["rejected"] if e["status"] == "ambiguous" and "joint estimates" in e["reason"]]
     assert len(amb) == 2
     assert "from scratch" in amb[0]["reason"] and "terms held there" in amb[0]["reason"]
+
+
+@pytest.mark.parametrize("case", ["paired", "share", "no_rescue"])
+def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_paired_over_seeds(
+        tmp_path, monkeypatch, case):
+    """Step 7's second look at the fit from scratch: where its comparison beyond the noise between optima fails
+    with a positive gain (forced), the extended model's terms, their own share of the fit clearing the floor, are
+    fitted at `n_paired` other seeds and paired with the term-free base of each seed (97.5 %, verdict forced to
+    pass): that confirms the fit from scratch, handed over. Where the share is inside the floor (forced), or the
+    rescue is switched off, no other seed is fitted, and with the reference's refit failing too (forced) the
+    terms are ambiguous, the reason saying why."""
+    import exolan.diagnose.procedure as P
+
+    real_confirm, real_share, real_paired, paired_calls = P._confirm, P._term_share, P._paired_confirm, []
+
+    def confirm(*a, **k):
+        g = real_confirm(*a, **k)
+        return dict(g, passes=False, gain=abs(g["gain"]) + 1e-12) if a[5] == 0.025 else g
+
+    def paired(pairs, groups, kind, s, alpha):
+        paired_calls.append(len(pairs))
+        with monkeypatch.context() as m:        # its own comparison as it is
+            m.setattr(P, "_confirm", real_confirm)
+            return dict(real_paired(pairs, groups, kind, s, alpha), passes=True)
+
+    monkeypatch.setattr(P, "_confirm", confirm)
+    monkeypatch.setattr(P, "_paired_confirm", paired)
+    if case == "share":
+        monkeypatch.setattr(P, "_term_share", lambda *a, **k: dict(real_share(*a, **k), passes_floor=False))
+    settings = {"rescue": False} if case == "no_rescue" else {}
+    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, **settings)
+    K = Settings().n_paired + 1
+    with_terms = [f for f in fits if f]
+    if case == "paired":
+        terms = sorted(rep["extended"]["terms"])
+        assert terms and paired_calls[-1] == K
+        cf = rep["extended"]["confirmation"]
+        assert cf["noise"] == f"the spread of the paired gains over {K} seeds" and cf["level"] == 0.975
+        assert rep["extended"]["model"].startswith("fitted from scratch with the terms")
+        # the extended model's terms at the reference's seed and K - 1 more; the term-free base at those seeds
+        assert sum(1 for f in with_terms if sorted(f"{a}:x" for a, _ in f) == terms) == K
+        assert len([f for f in fits if not f]) == K - 1
+        return
+    assert not paired_calls and len([f for f in fits if not f]) == Settings().n_optima
+    assert rep["findings"] == []
+    amb = [e for e in rep["rejected"] if e["status"] == "ambiguous" and "joint estimates" in e["reason"]]
+    assert amb and "as the reference's refit with the terms held there" in amb[0]["reason"]
+    assert ("within the refit noise floor (not fitted at other seeds)" in amb[0]["reason"]) is (case == "share")
 
 
 def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, monkeypatch):

@@ -144,7 +144,8 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-rescue", action="store_true",
                    help="do not fit a friction from scratch where its warm refit fails the gain rules (saves a base "
                         "fit per such friction, and the term-free fits below when nothing else needs them), nor try a "
-                        "further term paired over seeds where its cross-seed comparison fails in forward selection")
+                        "further term (in forward selection) or the extended model paired over seeds where its "
+                        "cross-seed comparison fails")
     p.add_argument("--optima", type=_at_least_one, default=None, metavar="N",
                    help="term-free fits from scratch at N other seeds that measure the noise between optima, against "
                         "which every fit from scratch is judged (default 2; at least 1: the noise needs a twin)")
