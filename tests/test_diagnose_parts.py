@@ -646,15 +646,15 @@ def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_refe
     assert "from scratch" in amb[0]["reason"] and "terms held there" in amb[0]["reason"]
 
 
-@pytest.mark.parametrize("case", ["paired", "share", "no_rescue"])
+@pytest.mark.parametrize("case", ["paired", "paired_fails", "share", "no_rescue"])
 def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_paired_over_seeds(
         tmp_path, monkeypatch, case):
     """Step 7's second look at the fit from scratch: where its comparison beyond the noise between optima fails
     with a positive gain (forced), the extended model's terms, their own share of the fit clearing the floor, are
     fitted at `n_paired` other seeds and paired with the term-free base of each seed (97.5 %, verdict forced to
-    pass): that confirms the fit from scratch, handed over. Where the share is inside the floor (forced), or the
-    rescue is switched off, no other seed is fitted, and with the reference's refit failing too (forced) the
-    terms are ambiguous, the reason saying why."""
+    pass): that confirms the fit from scratch, handed over. Where it fails (forced beyond the seeds' spread), or
+    the share is inside the floor (forced), or the rescue is switched off (no other seed fitted then), with the
+    reference's refit failing too (forced) the terms are ambiguous, the reason saying why."""
     import exolan.diagnose.procedure as P
 
     real_confirm, real_share, real_paired, paired_calls = P._confirm, P._term_share, P._paired_confirm, []
@@ -667,7 +667,8 @@ def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_
         paired_calls.append(len(pairs))
         with monkeypatch.context() as m:        # its own comparison as it is
             m.setattr(P, "_confirm", real_confirm)
-            return dict(real_paired(pairs, groups, kind, s, alpha), passes=True)
+            ok = case != "paired_fails"
+            return dict(real_paired(pairs, groups, kind, s, alpha), passes=ok, passes_bound=ok)
 
     monkeypatch.setattr(P, "_confirm", confirm)
     monkeypatch.setattr(P, "_paired_confirm", paired)
@@ -687,10 +688,15 @@ def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_
         assert sum(1 for f in with_terms if sorted(f"{a}:x" for a, _ in f) == terms) == K
         assert len([f for f in fits if not f]) == K - 1
         return
-    assert not paired_calls and len([f for f in fits if not f]) == Settings().n_optima
+    if case == "paired_fails":
+        assert paired_calls[-1] == K
+    else:
+        assert not paired_calls and len([f for f in fits if not f]) == Settings().n_optima
     assert rep["findings"] == []
     amb = [e for e in rep["rejected"] if e["status"] == "ambiguous" and "joint estimates" in e["reason"]]
     assert amb and "as the reference's refit with the terms held there" in amb[0]["reason"]
+    assert (f"paired over {K} seeds: not beyond the spread of the paired gains" in amb[0]["reason"]) is (
+        case == "paired_fails")
     assert ("within the refit noise floor (not fitted at other seeds)" in amb[0]["reason"]) is (case == "share")
 
 

@@ -1287,6 +1287,20 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     return m
 
 
+def _paired_failures(pr: dict, user_gain: float) -> list[str]:
+    """Why a paired comparison over seeds (`_paired_record` of `_paired_confirm` with the terms' share) failed,
+    each condition in words; `user_gain`: the user's gain of the fit handed over."""
+    by_seed = "by seed " + ", ".join(f"{v:.3g}" for v in pr["gain_by_seed"])
+    return ([] if pr["passes_bound"] else [
+        f"not beyond the spread of the paired gains over {pr['seeds']} seeds "
+        f"({pr['noise_between_seeds']:.3g}; {by_seed})"]) + \
+        ([] if min(pr["gain_by_seed"]) > 0 else [f"not every seed gains ({by_seed})"]) + \
+        ([] if user_gain > 0 else ["the user's torque error grows"]) + \
+        ([] if pr["terms_share"]["passes_floor"] else [
+            f"switched off, the terms cost their fit only {_gci(pr['terms_share'])}: within the refit noise floor "
+            "(an effect of this size cannot be told from a refit's noise in these data)"])
+
+
 def _paired_record(pr: dict) -> dict:
     """What the report keeps of a paired comparison over seeds (`run`'s `paired`)."""
     return dict(gain=pr["gain"], ci=pr["ci"], level=pr["level"], combination=pr["combination"], pooled=pr["pooled"],
@@ -1895,18 +1909,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
                         f"it gains {gained} at the reference's seed ({cs['combination']}), but {fs['why']}"
                         if "terms_share" in fs else f"{fs['why']} ({gained}, {cs['combination']})"))
                 else:
-                    by_seed = "by seed " + ", ".join(f"{v:.3g}" for v in dg["gain_by_seed"])
-                    fails = ([] if dg["passes_bound"] else [
-                        f"not beyond the spread of the paired gains over {dg['seeds']} seeds "
-                        f"({dg['noise_between_seeds']:.3g}; {by_seed})"]) + \
-                        ([] if min(dg["gain_by_seed"]) > 0 else [f"not every seed gains ({by_seed})"]) + \
-                        ([] if fs["user_gain"] > 0 else ["the user's torque error grows"]) + \
-                        ([] if dg["terms_share"]["passes_floor"] else [
-                            f"switched off, the term costs its fit only {_gci(dg['terms_share'])}: within the refit "
-                            "noise floor (an effect of this size cannot be told from a refit's noise in these data)"])
                     why.append(f"fitted from scratch ({fs['estimate']:.4g}) it gains {dg['gain']:.3g} "
                                f"[{dg['ci'][0]:.3g}, {dg['ci'][1]:.3g}] paired over seeds ({dg['combination']}, "
-                               f"{100 * dg['level']:.1f} %): " + ", ".join(fails))
+                               f"{100 * dg['level']:.1f} %): " + ", ".join(_paired_failures(dg, fs["user_gain"])))
             if not entry["identifiable"]:
                 why.append("parameter not identified (CI reaches the no-effect value / boundary)")
             if entry["passes_gain"] and not entry["passes_invariance"]:
@@ -2179,10 +2184,11 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             if share["passes_floor"]:
                 pr = paired(key, init, ext_model, (u_ext, d_ext), share)
                 g_p = by_seeds(pr)
-                tried += (f", {_gci(g_p)} paired over {pr['seeds']} seeds (by seed "
-                          + ", ".join(f"{v:.3g}" for v in pr["gain_by_seed"]) + ")")
                 if pr["confirmed"]:
                     confirmed, confirmation = True, g_p
+                else:
+                    tried += (f", {_gci(g_p)} paired over {pr['seeds']} seeds: "
+                              + (", ".join(_paired_failures(_paired_record(pr), pr["user_gain"])) or "fails"))
             else:
                 tried += (f"; switched off, the terms cost that fit only {_gci(share)}: within the refit noise floor "
                           "(not fitted at other seeds)")
