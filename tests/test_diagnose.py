@@ -198,6 +198,18 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
             print(f"a gain of {value} is inside this world's detection limits [{lim['k_below']:.3g}, {lim['k_above']:.3g}]")
             assert found == [], msg
             return rep
+    if eff == "actuation_delay" and (eff, joint) not in found:
+        # The report states the shortest delay these data can show (d_limit, first order at the base's misfit) and
+        # warns that one within twice that limit is estimated short. The zones are the report's own claims:
+        # below d_limit a miss is what it predicts; up to 2 d_limit the delay must still be named on its joint
+        # (`ambiguous`: held-out data did not confirm it); beyond, it must be found. Nothing else may be accepted
+        # in its place. (Measured: a 24.1 ms knee delay beside a limit of 18.7 ms, seed 6220, was ambiguous.)
+        lim = float(rep["detection_limits"]["actuation_delay"][joint]["d_limit"])
+        named = [e for e in rep["rejected"] if (e["effect"], e["joint"]) == (eff, joint) and e["status"] == "ambiguous"]
+        print(f"a delay of {1e3 * value:.3g} ms beside this world's detection limit of {1e3 * lim:.3g} ms: missed")
+        assert found == [] and value < 2 * lim, msg
+        assert value < lim or named, f"a delay under twice the limit must at least be named ambiguous; {msg}"
+        return rep
     assert (eff, joint) in found, msg
     assert found == [(eff, joint)], f"something besides the planted effect was accepted; {msg}"
     f = next(x for x in rep["findings"] if x["effect"] == eff and x["joint"] == joint)
