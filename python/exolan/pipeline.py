@@ -7,7 +7,7 @@
 4. export it to the Rust engine's weight file with ``exolan export``;
 5. open-loop rollouts with the Rust engine (``exolan rollout``) and a torch/Rust parity and speed check;
 6. diagnose the held-out users' recordings of the training tasks with that model (the diagnosis API with its
-   short-fit settings, bounded by EXOLAN_DIAGNOSE_TIMEOUT, default 600 s);
+   short-fit settings, bounded by EXOLAN_DIAGNOSE_TIMEOUT, default 1200 s);
 7. write ``DIR/pipeline.md`` / ``pipeline.json``: every step's status, wall time and outputs.
 
 The training happens once, inside step 2; steps 3-6 reuse its run directory instead of training again,
@@ -30,7 +30,9 @@ from pathlib import Path
 from . import reproduce as rp
 
 SCALE = "small"
-DIAGNOSE_TIMEOUT = float(os.environ.get("EXOLAN_DIAGNOSE_TIMEOUT", 600))
+# the diagnosis step took 441 s alone on two quiet cores and ran past 600 s beside a test run (measured, notes on
+# issue 7): the bound leaves room for a busy machine, and still ends a step that hangs
+DIAGNOSE_TIMEOUT = float(os.environ.get("EXOLAN_DIAGNOSE_TIMEOUT", 1200))
 
 
 def _cli(*args: str, log, timeout: float | None = None) -> subprocess.CompletedProcess:
