@@ -6,8 +6,6 @@ streaming encoder does.
 """
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 from typing import Sequence
 
@@ -15,6 +13,7 @@ import numpy as np
 import torch
 
 from .rollout import free_rollout, rollout
+from .runio import write_json
 
 HORIZONS = (4, 10, 20)
 
@@ -280,20 +279,10 @@ def _evaluate_run(run_dir, data, horizons) -> dict:
     return res
 
 
-def _jsonable(o):
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    return o
-
-
 def cli_evaluate(args) -> int:
     res = evaluate_run(args.run, args.data)
     out = Path(args.out) if args.out else Path(args.run) / "evaluation.json"
-    out.write_text(json.dumps(_jsonable(res), indent=2) + "\n")
+    write_json(out, res)
     print(_table(res))
     print(f"-> {out}")
     return 0

@@ -14,13 +14,12 @@ sign and the user-level p < 0.05.
 """
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .runio import write_json
 from .reproduce import (ARCHITECTURES, DELAN_BASED, LABELS, PLOT_TASKS, RunSpec, Scale, is_cyclic,
                         method_label, method_name)
 
@@ -254,25 +253,10 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
 
     figs = _figures(figdir, scale, specs, results, summary)
     summary["figures"] = figs
-    (out / "results.json").write_text(json.dumps(_jsonable(summary), indent=1, allow_nan=True))
+    write_json(out / "results.json", summary, indent=1)
     (out / "report.md").write_text(_markdown(scale, summary, figs))
     log(f"[report] wrote {out / 'report.md'}, {out / 'results.json'} and {len(figs)} figures")
     return summary
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        f = float(x)
-        return f if math.isfinite(f) else str(f)  # JSON has no inf/nan: write them as strings
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    return x
 
 
 def _claim(methods, split, a, b, paper_rel, title, unit="per_user"):

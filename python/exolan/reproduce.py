@@ -52,6 +52,8 @@ from typing import Any
 
 import numpy as np
 
+from .runio import atomic_write, write_json
+
 # --------------------------------------------------------------------------------------------------
 # Methods and tasks
 # --------------------------------------------------------------------------------------------------
@@ -680,15 +682,9 @@ def _store(out: Path, spec: RunSpec, ctx: JobContext, result: dict) -> None:
     d.mkdir(parents=True, exist_ok=True)
     arr = result.pop("_arrays", None)
     if arr:
-        _atomic_write(d / "plots.npz", arr)
-    _atomic_write(d / "result.json", json.dumps(result, indent=1).encode())
-    _atomic_write(d / "DONE", (_spec_key(spec, ctx) + "\n").encode())  # last: marks the run complete
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+        atomic_write(d / "plots.npz", arr)
+    write_json(d / "result.json", result, indent=1)
+    atomic_write(d / "DONE", (_spec_key(spec, ctx) + "\n").encode())  # last: marks the run complete
 
 
 def load_result(out: Path, spec: RunSpec) -> dict:

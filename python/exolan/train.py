@@ -40,6 +40,7 @@ from .config import TrainConfig, USER_MODEL_KEYS, load_config, merge
 from .losses import acceleration_loss, multistep_loss, torque_loss
 from .models import ExoModel, build_model
 from .rollout import rollout
+from .runio import atomic_torch_save, jsonable, write_json, write_jsonl
 
 CHECKPOINT = "checkpoint.pt"
 # config keys that may differ on --resume: none of them changes the weights an epoch produces
@@ -233,28 +234,6 @@ def batch_losses(model: ExoModel, ch: Chunks, idx: torch.Tensor, cfg: TrainConfi
 
 # -- run directory ---------------------------------------------------------------------------------
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def _atomic_json(path: Path, obj) -> None:
-    _atomic_write_bytes(path, (json.dumps(obj, indent=2) + "\n").encode())
-
-
-def _atomic_torch_save(path: Path, obj) -> None:
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    with open(tmp, "wb") as f:
-        torch.save(obj, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def _epoch_generator(seed: int, epoch: int) -> torch.Generator:
     return torch.Generator().manual_seed((int(seed) * 1_000_003 + int(epoch) * 7_919 + 17) % (2 ** 63))
 
@@ -356,15 +335,15 @@ def _run_inner(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path,
         model.to(device)
         opt.load_state_dict(ck["optimizer"])
         start_epoch, metrics = int(ck["epoch"]), list(ck["metrics"])
-    _atomic_json(out / "config.json", cfg.to_dict())
-    _atomic_json(out / "model.json", spec)
-    _atomic_json(out / "norm.json", stats)
+    write_json(out / "config.json", cfg.to_dict())
+    write_json(out / "model.json", spec)
+    write_json(out / "norm.json", stats)
     # metrics.jsonl mirrors the checkpoint: epochs after the last checkpoint are dropped on resume
-    _atomic_write_bytes(out / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in metrics).encode())
+    write_jsonl(out / "metrics.jsonl", metrics)
     run_info = dict(status="running", data=data_path, n_train_trials=len(train_trials),
                     n_val_trials=len(val_trials), n_train_samples=stats["n_samples"], device=str(device),
                     torch_threads=torch.get_num_threads())
-    _atomic_json(out / "run.json", run_info)
+    write_json(out / "run.json", run_info)
 
     warmup = cfg.warmup if cfg.warmup >= 0 else (model.receptive_field - 1 if model.encoder is not None else 0)
     if model.encoder_kind == "lstm" and cfg.warmup < 0:
@@ -407,23 +386,23 @@ def _run_inner(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path,
         metrics.append(row)
         bar.set_postfix(loss=f"{row['loss']:.4g}")
         if last or (epoch + 1) % cfg.checkpoint_every == 0:
-            _atomic_torch_save(ck_path, dict(epoch=epoch + 1, model=model.state_dict(),
+            atomic_torch_save(ck_path, dict(epoch=epoch + 1, model=model.state_dict(),
                                              optimizer=opt.state_dict(), metrics=metrics,
                                              torch_rng=torch.get_rng_state()))
-            _atomic_write_bytes(out / "metrics.jsonl", "".join(json.dumps(m) + "\n" for m in metrics).encode())
+            write_jsonl(out / "metrics.jsonl", metrics)
     bar.close()
     if model.is_lagrangian and cfg.physics_check:
         # the physics check every user wants: H positive definite with its condition number range on the
         # data, and the energy of the free conservative model under the integrator
-        from .evaluate import _jsonable, physics_check
+        from .evaluate import physics_check
 
         model.eval()
         phys = physics_check(model, val_trials or train_trials, max_samples=20000, n_rollouts=16)
         phys["on"] = "validation trials" if val_trials else "training trials"
-        _atomic_json(out / "physics.json", _jsonable(phys))
+        write_json(out / "physics.json", jsonable(phys))
     run_info.update(status="done", epochs=cfg.epochs,
                     train_seconds=sum(m["seconds"] for m in metrics))
-    _atomic_json(out / "run.json", run_info)
+    write_json(out / "run.json", run_info)
     return out
 
 

@@ -150,6 +150,7 @@ from scipy import stats as scipy_stats
 
 from ..data import savgol_derivative
 from ..extensions import SIZEABLE, ExtendedModel
+from ..runio import jsonable
 from . import residuals as R
 from . import stats
 from .candidates import FITTED, LIBRARY, NESTS, nested_choice, rivals
@@ -2334,25 +2335,10 @@ _PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "e
 
 
 def _public(e: dict) -> dict:
-    return {k: _json(e[k]) for k in _PUBLIC if k in e}
-
-
-def _json(x):
-    if isinstance(x, dict):
-        return {k: _json(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        x = float(x)
-        return x if math.isfinite(x) else (None if math.isnan(x) else ("inf" if x > 0 else "-inf"))
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.ndarray):
-        return _json(x.tolist())
-    return x
+    return {k: jsonable(e[k]) for k in _PUBLIC if k in e}
 
 
 def _strip(m: dict | None) -> dict:
     if m is None:
         return {}
-    return _json({k: v for k, v in m.items()})
+    return jsonable({k: v for k, v in m.items()})

@@ -3,22 +3,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ..runio import atomic_write, jsonable
 from .candidates import library_table
 from .fit import Flat
 from .residuals import residuals
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
 
 
 def _fmt(x, p=4):
@@ -228,8 +220,8 @@ def write(out: Path, res: dict) -> dict:
         plots["error"] = repr(exc)
     rep = dict(rep)
     rep["plots"] = plots
-    _atomic_write(out / "diagnosis.json", json.dumps(rep, indent=1, default=str))
-    _atomic_write(out / "diagnosis.md", markdown(rep))
+    atomic_write(out / "diagnosis.json", json.dumps(jsonable(rep), indent=1, default=str))
+    atomic_write(out / "diagnosis.md", markdown(rep))
     return rep
 
 

@@ -37,7 +37,8 @@ from .anthropometry import LegParams, User, leg_params, make_users
 from .effects import UNITS as EFFECT_UNITS, Effect, coerce, parse_effect
 from .generate import FS, SIDES, TrialWorld, record
 from .tasks import PAPER_TRAIN_TASKS, TASK_SPECS, TASKS
-from .writer import resolution, write_csv, write_json
+from ..runio import write_json
+from .writer import resolution, write_csv
 
 __all__ = ["simulate", "simulate_trial", "cli_simulate", "TASKS", "PAPER_TRAIN_TASKS", "TASK_SPECS",
            "Effect", "parse_effect", "EFFECT_UNITS", "make_users", "leg_params", "User", "LegParams",
@@ -137,10 +138,10 @@ def simulate(out, users: int = 21, tasks="all", seconds: float | None = None, se
 
 
 def _write_subjects(path, people):
-    from .writer import atomic_write_bytes
+    from ..runio import atomic_write
 
     lines = ["subject,mass_kg,height_m"] + [f"{u.name},{u.mass},{u.height}" for u in people]
-    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+    atomic_write(path, ("\n".join(lines) + "\n").encode())
 
 
 def cli_simulate(args: argparse.Namespace) -> int:

@@ -9,30 +9,12 @@ to their sensor resolution first, which keeps the files small.
 from __future__ import annotations
 
 import io
-import json
-import os
-import tempfile
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
-
-def atomic_write_bytes(path, data: bytes) -> None:
-    path = os.fspath(path)
-    d = os.path.dirname(path) or "."
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=d)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+from ..runio import atomic_write
 
 
 def csv_bytes(columns: dict, decimals: dict | None = None) -> bytes:
@@ -52,11 +34,9 @@ def csv_bytes(columns: dict, decimals: dict | None = None) -> bytes:
 
 
 def write_csv(path, columns: dict, decimals: dict | None = None) -> None:
-    atomic_write_bytes(path, csv_bytes(columns, decimals))
+    atomic_write(path, csv_bytes(columns, decimals))
 
 
-def write_json(path, obj) -> None:
-    atomic_write_bytes(path, (json.dumps(obj, indent=2) + "\n").encode())
 
 
 def resolution(name: str) -> int:

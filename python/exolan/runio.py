@@ -1,0 +1,82 @@
+"""One home for writing run directories: atomic files and JSON.
+
+Every file is written to a temporary name in its destination folder and renamed into place (os.replace is
+atomic on POSIX), so an interrupted run never leaves a half-written file behind. `jsonable` turns numpy
+values and non-finite floats into plain JSON (NaN -> null, ±inf -> "inf" / "-inf"), so that every file
+exolan writes is strict JSON that any reader accepts.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str) -> None:
+    """Write `data` to `path` through a temporary file in the same folder, then rename it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data.encode() if isinstance(data, str) else data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def atomic_torch_save(path: str | os.PathLike, obj: Any) -> None:
+    """torch.save through a temporary file (a checkpoint is never half-written)."""
+    import io
+
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    atomic_write(path, buf.getvalue())
+
+
+def jsonable(x: Any) -> Any:
+    """Plain JSON values: numpy scalars and arrays, tuples, Paths; NaN -> None, ±inf -> "inf" / "-inf"."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.floating, float)):
+        f = float(x)
+        if math.isfinite(f):
+            return f
+        return None if math.isnan(f) else ("inf" if f > 0 else "-inf")
+    if isinstance(x, os.PathLike):
+        return os.fspath(x)
+    return x
+
+
+def dumps(obj: Any, indent: int | None = 2) -> str:
+    """Strict JSON text of `obj` (through `jsonable`), newline-terminated."""
+    return json.dumps(jsonable(obj), indent=indent, allow_nan=False) + "\n"
+
+
+def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:
+    atomic_write(path, dumps(obj, indent))
+
+
+def write_jsonl(path: str | os.PathLike, rows: list) -> None:
+    atomic_write(path, "".join(json.dumps(jsonable(r), allow_nan=False) + "\n" for r in rows))
