@@ -39,6 +39,10 @@ class TrainConfig:
     w_fd: float = 0.0              # weight of the acceleration (forward dynamics) MSE
     w_ms: float = 0.0              # weight of the multi-step rollout loss
     horizon: int = 4               # H, steps of the multi-step loss
+    ms_norm: str = "state"         # multi-step errors divided by: "state" = the training variance of q and q̇
+                                   # (paper); "increment" = the variance of their h-step change (docs/RESULTS.md)
+    patience: int = 0              # early stopping: epochs without a better validation loss (0 = off)
+    val_users: int = 0             # training users carved out as the validation set for early stopping
     n_starts: int = 256            # N_s rollout starts per batch
     chunk_steps: int = 256         # loss steps per trial chunk (plus the encoder's warm-up before them)
     warmup: int = -1               # context steps before a chunk's loss steps; -1 = receptive field − 1 (62)
@@ -62,6 +66,12 @@ class TrainConfig:
                 raise ValueError(f"{name} must be ≥ 1")
         if self.w_fd < 0 or self.w_ms < 0:
             raise ValueError("loss weights must be ≥ 0")
+        if self.ms_norm not in ("state", "increment"):
+            raise ValueError(f"ms_norm must be 'state' or 'increment', not {self.ms_norm!r}")
+        if self.patience < 0 or self.val_users < 0:
+            raise ValueError("patience and val_users must be ≥ 0")
+        if self.patience and not self.val_users:
+            raise ValueError("early stopping (patience > 0) needs a validation set: set val_users ≥ 1")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

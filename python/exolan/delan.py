@@ -51,24 +51,42 @@ class JointFeatures:
         self.dim = feature_dim(self.joint_types)
         self.rev = [j for j, t in enumerate(self.joint_types) if t == REVOLUTE]
         self.pri = [j for j, t in enumerate(self.joint_types) if t == PRISMATIC]
+        # (n, d_phi) 0/1: feature i depends on joint k
+        self._owner = torch.zeros(self.n, self.dim, dtype=torch.float64)
+        r = len(self.rev)
+        for i, j in enumerate(self.rev):
+            self._owner[j, i] = self._owner[j, r + i] = 1.0
+        for i, j in enumerate(self.pri):
+            self._owner[j, 2 * r + i] = 1.0
+
+    def phi(self, q: torch.Tensor) -> torch.Tensor:
+        """φ(q) (N, d_phi) alone."""
+        parts = []
+        if self.rev:
+            qr = q if len(self.rev) == self.n else q[:, self.rev]
+            parts += [torch.cos(qr), torch.sin(qr)]
+        if self.pri:
+            parts.append(q[:, self.pri])
+        return torch.cat(parts, dim=-1)
+
+    def tangents(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """φ(q) (N, d_phi) and its q-tangents (N, n, d_phi): row k is ∂φ/∂q_k. Each feature depends on one
+        joint, so the tangents are the features' own derivatives (−sin, cos, 1) masked by that joint."""
+        parts, dparts = [], []
+        if self.rev:
+            qr = q if len(self.rev) == self.n else q[:, self.rev]
+            cos, sin = torch.cos(qr), torch.sin(qr)
+            parts += [cos, sin]
+            dparts += [-sin, cos]
+        if self.pri:
+            parts.append(q[:, self.pri])
+            dparts.append(torch.ones_like(q[:, self.pri]))
+        return torch.cat(parts, dim=-1), torch.cat(dparts, dim=-1).unsqueeze(1) * self._owner.to(q)
 
     def __call__(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """q (N, n) -> φ (N, d_phi), dφ/dq (N, d_phi, n)."""
-        N, n = q.shape
-        r = len(self.rev)
-        phi_parts, dphi = [], q.new_zeros(N, self.dim, n)
-        if r:
-            qr = q[:, self.rev]
-            cos, sin = torch.cos(qr), torch.sin(qr)
-            phi_parts += [cos, sin]
-            for i, j in enumerate(self.rev):
-                dphi[:, i, j] = -sin[:, i]          # d cos q_j / d q_j
-                dphi[:, r + i, j] = cos[:, i]       # d sin q_j / d q_j
-        if self.pri:
-            phi_parts.append(q[:, self.pri])
-            for i, j in enumerate(self.pri):
-                dphi[:, 2 * r + i, j] = 1.0
-        return torch.cat(phi_parts, dim=-1), dphi
+        phi, t = self.tangents(q)
+        return phi, t.transpose(1, 2)
 
 
 def mlp(d_in: int, hidden: int, d_out: int, layers: int = 2) -> nn.ModuleList:
@@ -90,26 +108,28 @@ def mlp_forward(layers: nn.ModuleList, x: torch.Tensor) -> torch.Tensor:
 
 
 def mlp_forward_jac(layers: nn.ModuleList, x: torch.Tensor, dx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """tanh MLP value and its Jacobian with respect to q, carried forward layer by layer.
+    """tanh MLP value and its Jacobian with respect to q: x (N, d_in); dx (N, k, n), the derivative of the
+    first k inputs (φ(q)). Returns y (N, d_out), dy/dq (N, d_out, n) (`mlp_tangents` in the other layout)."""
+    y, dy = mlp_tangents(layers, x, dx.transpose(1, 2))
+    return y, dy.transpose(1, 2)
 
-    x (N, d_in); dx (N, k, n): the derivative of the first k inputs (φ(q)) with respect to q — the
-    remaining inputs (z) do not depend on q, so only the first layer's first k columns see dx.
-    Returns y (N, d_out), dy/dq (N, d_out, n).
 
-    Internally the Jacobian is carried as n tangent rows (N, n, width), so that every layer's
-    derivative is one plain GEMM, da = dh Wᵀ, over N·n rows (no batched matmul with a broadcast W).
+def mlp_tangents(layers: nn.ModuleList, x: torch.Tensor, tx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """tanh MLP value y (N, d_out) and its q-tangents dy (N, n, d_out), carried forward layer by layer.
+
+    tx (N, n, k): the tangents of the first k inputs (φ(q)); the remaining inputs (z) do not depend on q, so
+    the first layer's tangent GEMM reads only its first k columns. Value and tangents stay separate contiguous
+    tensors (the training hot path: every elementwise op runs over contiguous memory).
     """
     first = layers[0]
-    k = dx.shape[1]
-    a = first(x)
-    da = F.linear(dx.transpose(1, 2), first.weight[:, :k])       # (N, n, h)
+    a = F.linear(x, first.weight, first.bias)
+    da = F.linear(tx, first.weight[:, : tx.shape[-1]])
     for i in range(1, len(layers)):
-        lin = layers[i]
         h = torch.tanh(a)
-        dh = (1.0 - h * h).unsqueeze(1) * da                      # tanh' = 1 − tanh²
-        a = lin(h)
-        da = F.linear(dh, lin.weight)
-    return a, da.transpose(1, 2)
+        da = (1.0 - h * h).unsqueeze(1) * da                      # tanh' = 1 − tanh²
+        a = F.linear(h, layers[i].weight, layers[i].bias)
+        da = F.linear(da, layers[i].weight)
+    return a, da
 
 
 def tril_indices(n: int) -> tuple[list[int], list[int]]:
@@ -143,6 +163,7 @@ class Lagrangian(nn.Module):
         self.L = mlp(d_in, hidden, n * (n + 1) // 2)
         self.V = mlp(d_in, hidden, 1)
         self._tril = tril_indices(n)
+        self._scatters: dict = {}
 
     # -- the networks with their q-Jacobians -------------------------------------------------------
     def _inputs(self, q: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -150,22 +171,36 @@ class Lagrangian(nn.Module):
         x = torch.cat([phi, z], dim=-1) if self.z_dim else phi
         return x, dphi
 
+    def _scatter(self, like: torch.Tensor) -> torch.Tensor:
+        """(m, n·n) 0/1: network output o -> its entry of L (diagonal first, then the strict lower part)."""
+        key = (like.dtype, like.device)
+        if key not in self._scatters:
+            n = self.n
+            S = torch.zeros(n * (n + 1) // 2, n * n, dtype=like.dtype)
+            for o in range(n):
+                S[o, o * n + o] = 1.0
+            for o, (i, j) in enumerate(zip(*self._tril)):
+                S[n + o, i * n + j] = 1.0
+            self._scatters[key] = S.to(like.device)
+        return self._scatters[key]
+
+    def _factor(self, u: torch.Tensor, du: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """L (N, n, n) from the network output u (N, m), and its q-tangents dL (N, k, n, n) from du (N, k, m):
+        softplus + offset on the diagonal (softplus' = sigmoid), the rest as is; one GEMM places the entries."""
+        n, N = self.n, u.shape[0]
+        d = u[:, :n]
+        S = self._scatter(u)
+        Lm = (torch.cat([F.softplus(d) + self.softplus_offset, u[:, n:]], dim=1) @ S).view(N, n, n)
+        if du is None:
+            return Lm, None
+        du2 = torch.cat([torch.sigmoid(d).unsqueeze(1) * du[:, :, :n], du[:, :, n:]], dim=2)
+        return Lm, (du2 @ S).view(N, du.shape[1], n, n)
+
     def _cholesky(self, x: torch.Tensor, dphi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """L (N, n, n) lower triangular and dL/dq (N, n, n, n), last index = q_k."""
-        n = self.n
         u, du = mlp_forward_jac(self.L, x, dphi)         # (N, m), (N, m, n)
-        N = u.shape[0]
-        Lm = u.new_zeros(N, n, n)
-        dL = u.new_zeros(N, n, n, n)
-        diag = torch.arange(n)
-        d_u = u[:, :n]
-        Lm[:, diag, diag] = F.softplus(d_u) + self.softplus_offset
-        dL[:, diag, diag, :] = torch.sigmoid(d_u).unsqueeze(-1) * du[:, :n]   # softplus' = sigmoid
-        if n > 1:
-            rows, cols = self._tril
-            Lm[:, rows, cols] = u[:, n:]
-            dL[:, rows, cols, :] = du[:, n:]
-        return Lm, dL
+        Lm, dL = self._factor(u, du.transpose(1, 2))
+        return Lm, dL.permute(0, 2, 3, 1)
 
     def _flatten(self, *xs: torch.Tensor) -> tuple[tuple[int, ...], list[torch.Tensor]]:
         lead = xs[0].shape[:-1]
@@ -185,8 +220,9 @@ class Lagrangian(nn.Module):
     def inertia(self, q: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         z = self._z(z, q)
         lead, (qf, zf) = self._flatten(q, z)
-        x, dphi = self._inputs(qf, zf)
-        Lm, _ = self._cholesky(x, dphi)
+        phi = self.features.phi(qf)
+        x = torch.cat([phi, zf], dim=-1) if self.z_dim else phi
+        Lm, _ = self._factor(mlp_forward(self.L, x), None)
         return (Lm @ Lm.transpose(-1, -2)).reshape(*lead, self.n, self.n)
 
     def potential(self, q: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
@@ -209,22 +245,30 @@ class Lagrangian(nn.Module):
 
     def terms(self, q: torch.Tensor, qd: torch.Tensor, z: torch.Tensor | None = None) -> Terms:
         """H, c = Ḣ q̇ − ½ ∂(q̇ᵀ H q̇)/∂q and g = ∂V/∂q, all from one forward-mode pass."""
+        Lm, H, c, g = self.factor_terms(q, qd, z)
+        return Terms(H, c, g)
+
+    def factor_terms(self, q: torch.Tensor, qd: torch.Tensor, z: torch.Tensor | None = None):
+        """(L, H, c, g): `terms` and the Cholesky factor L of H that the networks produce (a forward-dynamics
+        solve needs no factorisation then)."""
         z = self._z(z, q)
         lead, (qf, qdf, zf) = self._flatten(q, qd, z)
-        x, dphi = self._inputs(qf, zf)
-        Lm, dL = self._cholesky(x, dphi)
+        N, n = qf.shape
+        phi, tphi = self.features.tangents(qf)                                   # (N, d_phi), (N, n, d_phi)
+        x = torch.cat([phi, zf], dim=-1) if self.z_dim else phi
+        u, du = mlp_tangents(self.L, x, tphi)
+        _, dv = mlp_tangents(self.V, x, tphi)
+        Lm, dL = self._factor(u, du)                                             # dL[b, k] = ∂L/∂q_k
         H = Lm @ Lm.transpose(-1, -2)
-        # Time derivative of L along the motion: L̇ = Σ_k ∂L/∂q_k q̇_k; Ḣ = L̇ Lᵀ + L L̇ᵀ.
-        Ld = torch.einsum("bijk,bk->bij", dL, qdf)
-        Hd_qd = Ld @ (Lm.transpose(-1, -2) @ qdf.unsqueeze(-1)) + Lm @ (Ld.transpose(-1, -2) @ qdf.unsqueeze(-1))
-        # ∂(q̇ᵀ L Lᵀ q̇)/∂q_k = 2 (∂L/∂q_k ᵀ q̇) · (Lᵀ q̇), so the ½ cancels the 2.
-        Lt_qd = (Lm.transpose(-1, -2) @ qdf.unsqueeze(-1)).squeeze(-1)            # (N, n)
-        dLt_qd = torch.einsum("bijk,bi->bjk", dL, qdf)                            # (N, n, n): [j, k]
-        dT = torch.einsum("bjk,bj->bk", dLt_qd, Lt_qd)
+        # Ḣ q̇ = L̇ (Lᵀ q̇) + L (L̇ᵀ q̇) with L̇ = Σ_k ∂L/∂q_k q̇_k
+        w = (Lm.transpose(-1, -2) @ qdf.unsqueeze(-1))                           # (N, n, 1) = Lᵀ q̇
+        Ld = (qdf.unsqueeze(1) @ dL.reshape(N, n, n * n)).view(N, n, n)
+        Hd_qd = Ld @ w + Lm @ (Ld.transpose(-1, -2) @ qdf.unsqueeze(-1))
+        # ½ ∂(q̇ᵀ L Lᵀ q̇)/∂q_k = q̇ᵀ (∂L/∂q_k) (Lᵀ q̇)
+        dT = ((dL @ w.unsqueeze(1)).squeeze(-1) * qdf.unsqueeze(1)).sum(-1)   # (N, n)
         c = Hd_qd.squeeze(-1) - dT
-        g = self._gravity(x, dphi)
-        n = self.n
-        return Terms(H.reshape(*lead, n, n), c.reshape(*lead, n), g.reshape(*lead, n))
+        g = self.v_scale * dv[:, :, 0]
+        return (Lm.reshape(*lead, n, n), H.reshape(*lead, n, n), c.reshape(*lead, n), g.reshape(*lead, n))
 
 
 # -- pure functions of a Lagrangian ----------------------------------------------------------------
@@ -250,10 +294,29 @@ def solve_inertia(H: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     return torch.cholesky_solve(rhs.unsqueeze(-1), Lc).squeeze(-1)
 
 
+def solve_factor(Lm: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    """H⁻¹ rhs for H = L Lᵀ with L lower triangular (..., n, n): forward then back substitution written out
+    over the batch (O(n²) elementwise ops; faster than a batched LAPACK call for the few joints of a leg)."""
+    n = rhs.shape[-1]
+    y: list[torch.Tensor] = []
+    for i in range(n):
+        acc = rhs[..., i]
+        for j in range(i):
+            acc = acc - Lm[..., i, j] * y[j]
+        y.append(acc / Lm[..., i, i])
+    x: list[torch.Tensor] = [rhs[..., 0]] * n
+    for i in reversed(range(n)):
+        acc = y[i]
+        for j in range(i + 1, n):
+            acc = acc - Lm[..., j, i] * x[j]
+        x[i] = acc / Lm[..., i, i]
+    return torch.stack(x, dim=-1)
+
+
 def forward_dynamics(lag: Lagrangian, q, qd, tau, z=None) -> torch.Tensor:
     """q̈ = H⁻¹ (τ − c − g); τ is every generalised force acting besides the rigid-body terms."""
-    H, c, g = lag.terms(q, qd, z)
-    return solve_inertia(H, tau - c - g)
+    Lm, _, c, g = lag.factor_terms(q, qd, z)
+    return solve_factor(Lm, tau - c - g)
 
 
 def energy(lag: Lagrangian, q, qd, z=None) -> tuple[torch.Tensor, torch.Tensor]:

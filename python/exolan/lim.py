@@ -29,7 +29,7 @@ class LIM(nn.ModuleList):
     def lever(self, q: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         """B(q, z) (..., n), metres."""
         lead = q.shape[:-1]
-        phi, _ = self.features(q.reshape(-1, q.shape[-1]))
+        phi = self.features.phi(q.reshape(-1, q.shape[-1]))
         if self.z_dim:
             x = torch.cat([phi, z.expand(*lead, self.z_dim).reshape(phi.shape[0], -1)], dim=-1)
         else:

@@ -196,10 +196,10 @@ class ExoModel(nn.Module):
         """(τ̂, q̈̂) from one evaluation of the terms: the training loss with w_fd needs both."""
         self._need_lagrangian("inverse_and_forward")
         z = self._z(z, q)
-        H, c, g = self.delan.terms(q, qd, z)
+        Lm, H, c, g = self.delan.factor_terms(q, qd, z)
         tc = self.contact(q, z, self._fv(f_v, q)) if self.lim is not None else torch.zeros_like(q)
         tau_hat = (H @ qdd.unsqueeze(-1)).squeeze(-1) + c + g - tc
-        qdd_hat = _delan.solve_inertia(H, tau + tc - c - g)
+        qdd_hat = _delan.solve_factor(Lm, tau + tc - c - g)
         return tau_hat, qdd_hat
 
     def energy(self, q, qd, z=None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -18,19 +18,24 @@ def euler_step(q, qd, qdd, dt):
     return q + dt * qd1, qd1
 
 
-def rollout(model, q0, qd0, tau, dt, z=None, f_v=None):
+def rollout(model, q0, qd0, tau, dt, z=None, f_v=None, qdd0=None):
     """Open-loop rollout of a DeLaN-based model over H = tau.shape[-2] steps.
 
-    q0, qd0 (B, n); tau (B, H, n); z (B, H, dz) or None; f_v (B, H) or None.
+    q0, qd0 (B, n); tau (B, H, n); z (B, H, dz) or None; f_v (B, H) or None. `qdd0` (B, n), where given, is
+    the model's q̈ at the initial state (the training batch has already computed it: the multi-step loss
+    then evaluates the model H − 1 times per start instead of H).
     Returns q, qd (B, H + 1, n), index 0 being the initial state.
     """
     H = tau.shape[-2]
     qs, qds = [q0], [qd0]
     q, qd = q0, qd0
     for k in range(H):
-        qdd = model.forward_dynamics(q, qd, tau[..., k, :],
-                                     None if z is None else z[..., k, :],
-                                     None if f_v is None else f_v[..., k])
+        if k == 0 and qdd0 is not None:
+            qdd = qdd0
+        else:
+            qdd = model.forward_dynamics(q, qd, tau[..., k, :],
+                                         None if z is None else z[..., k, :],
+                                         None if f_v is None else f_v[..., k])
         q, qd = euler_step(q, qd, qdd, dt)
         qs.append(q)
         qds.append(qd)
