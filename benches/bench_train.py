@@ -1,136 +1,152 @@
-"""Training epoch time: the sequence-level encoder (one TCN pass per trial chunk, exolan's training path)
-versus the windowed encoder (a fresh 63-step TCN pass per sample), printed as a ratio.
+"""Training throughput: loss samples per second of one optimiser step at the paper's batch (8192), for
+ExoLaN+LIM with w_fd and w_ms (H = 4, 256 starts) and for MLP-TCN+LIM (torque loss), at 1 and 2 torch threads;
+with `--against REV`, the same measurement of the tree at git revision REV in the same run, and the ratios.
 
-    python benches/bench_train.py [--data DIR] [--batches 8] [--threads N] [--device cpu|cuda]
+    python benches/bench_train.py [--against 66a29dd] [--data DIR] [--batches 6] [--repeats 3] [--threads 1,2]
 
-Without --data it simulates the default world (`exolan simulate` defaults: 21 users, 28 tasks) once into
-out/bench_world and trains on the paper's training split. Both variants use the same model, batch size
-(8192 loss samples), loss (torque only, ExoLaN with LIM) and optimiser step; only the way z is obtained
-differs. Each variant runs `--batches` timed batches after one warm-up batch; the epoch time is the mean
-batch time times the batches an epoch holds. A benchmark script, not a test.
+Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
+alternating within every repeat so that a busy machine slows both alike; a figure is the best of `--repeats`
+(the least disturbed run). The old tree is checked out once into a git worktree under out/bench_trees/.
+Without --data it simulates the paper's training split (21 users x the 7 training tasks, 6 s per trial) into
+out/bench_world once. A benchmark script, not a test.
 """
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
-
-from exolan.config import TrainConfig
-from exolan.data import context_features, load, paper_split
-from exolan.losses import torque_loss
-from exolan.models import build_model
-from exolan.train import _describe, batch_losses, compute_stats, data_scales, make_chunks
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = {
+    "exolan+LIM w_fd+w_ms": dict(method="exolan", w_fd=0.01, w_ms=1.0),
+    "MLP-TCN+LIM": dict(method="mlp-tcn", w_fd=0.0, w_ms=0.0),
+}
 
 
-def windowed_batches(trials, W: int):
-    """Flat arrays of the valid samples plus a zero-prefixed context array to cut 63-step windows from."""
-    ctx, keep, idx = [], [], []
-    q, qd, qdd, tau, f_v, mass = [], [], [], [], [], []
-    offset = 0
-    for t in trials:
-        T = len(t.q)
-        c = context_features(t)
-        ctx += [np.zeros((W, c.shape[1])), c]
-        keep += [np.zeros(W, bool), np.ones(T, bool)]
-        v = np.asarray(t.valid, bool)
-        idx.append(offset + W + np.nonzero(v)[0])
-        offset += W + T
-        q.append(t.q[v]); qd.append(t.qd[v]); qdd.append(t.qdd[v]); tau.append(t.tau[v]); f_v.append(t.f_v[v])
-        mass.append(np.full(int(v.sum()), t.mass))
-    f = lambda a: torch.as_tensor(np.concatenate(a), dtype=torch.float32)
-    return dict(ctx=f(ctx), keep=torch.as_tensor(np.concatenate(keep)), pos=torch.as_tensor(np.concatenate(idx)),
-                q=f(q), qd=f(qd), qdd=f(qdd), tau=f(tau), f_v=f(f_v), mass=f(mass))
+def worker(data: str, config: str, threads: int, batches: int, batch_size: int) -> dict:
+    """One measurement with whatever `exolan` is importable (this tree's or the old one's)."""
+    import torch
+
+    torch.set_num_threads(threads)
+    from exolan.config import TrainConfig
+    from exolan.data import load, paper_split
+    from exolan.models import build_model
+    from exolan.train import _describe, batch_losses, compute_stats, data_scales, make_chunks
+
+    c = CONFIGS[config]
+    trials = list(paper_split(load(data)).train)
+    desc, stats = _describe(trials), compute_stats(trials)
+    torch.manual_seed(0)
+    black_box = {} if c["method"] == "exolan" else dict(state_mean=stats["state_mean"], state_std=stats["state_std"],
+                                                        tau_scale=stats["tau_std"])
+    model = build_model(c["method"], lim=True, joint_types=desc["joint_types"], joint_names=desc["joint_names"],
+                        context_channels=desc["context_channels"], **data_scales(stats), **black_box)
+    model.norm.set_stats(stats["ctx_mean"], stats["ctx_std"])
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-3)
+    cfg = TrainConfig(method=c["method"], batch_size=batch_size, w_fd=c["w_fd"], w_ms=c["w_ms"])
+    ch = make_chunks(trials, model.receptive_field - 1, cfg.chunk_steps, cfg.horizon)
+    per = max(1, cfg.batch_size // cfg.chunk_steps)
+    K = ch.q.shape[0]
+    gen = torch.Generator().manual_seed(0)
+    perm = torch.randperm(K, generator=gen)
+    one = torch.ones(len(desc["joint_names"]))
+    n_samples = 0
+
+    def step(b):
+        nonlocal n_samples
+        idx = perm[(b * per) % K:][:per]
+        loss = batch_losses(model, ch, idx, cfg, one, one, desc["dt"], gen)["loss"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return int(ch.loss[idx].sum())
+
+    step(0)                                    # warm-up
+    t0 = time.perf_counter()
+    for b in range(1, batches + 1):
+        n_samples += step(b)
+    dt = time.perf_counter() - t0
+    return dict(samples_per_s=n_samples / dt, ms_per_batch=dt / batches * 1e3)
+
+
+def tree_of(rev: str) -> Path:
+    """A git worktree of `rev` (made once), with this tree's native module copied in if it has none."""
+    d = ROOT / "out" / "bench_trees" / rev
+    if not d.exists():
+        d.parent.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(d), rev], check=True,
+                       stdout=subprocess.DEVNULL)
+    pkg = d / "python" / "exolan"
+    if not list(pkg.glob("_native*.so")):
+        for so in (ROOT / "python" / "exolan").glob("_native*.so"):
+            shutil.copy2(so, pkg / so.name)
+    return d
+
+
+def measure(tree: Path, data: str, config: str, threads: int, batches: int, batch_size: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree / "python"), OMP_NUM_THREADS=str(threads))
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", config, "--data", data,
+           "--threads", str(threads), "--batches", str(batches), "--batch-size", str(batch_size)]
+    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--against", default=None, help="git revision to compare with (e.g. 66a29dd)")
     ap.add_argument("--data", default=None)
-    ap.add_argument("--batches", type=int, default=8)
+    ap.add_argument("--batches", type=int, default=6)
     ap.add_argument("--batch-size", type=int, default=8192)
-    ap.add_argument("--threads", type=int, default=0)
-    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", default="1,2")
+    ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--json", default=None, help="write the figures here")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    dev = torch.device(args.device)
-    data = Path(args.data) if args.data else Path("out/bench_world")
+    if args.worker:
+        print(json.dumps(worker(args.data, args.worker, int(args.threads), args.batches, args.batch_size)))
+        return
+    data = Path(args.data) if args.data else ROOT / "out" / "bench_world"
     if not args.data and not (data / "subjects.csv").exists():
         from exolan.world import simulate
 
-        print(f"simulating the default world into {data} (once) ...", flush=True)
-        simulate(data, progress=True)
-    trials = list(paper_split(load(data)).train)
-    desc = _describe(trials)
-    stats = compute_stats(trials)
-    n = stats["n_samples"]
-    print(f"training split: {len(trials)} trials, {n} valid samples; batch {args.batch_size}; "
-          f"torch threads {torch.get_num_threads()}; device {dev}")
-
-    torch.manual_seed(0)
-    model = build_model("exolan", lim=True, joint_types=desc["joint_types"], joint_names=desc["joint_names"],
-                        context_channels=desc["context_channels"], **data_scales(stats))
-    model.norm.set_stats(stats["ctx_mean"], stats["ctx_std"])
-    model.to(dev)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-3)
-    W = model.receptive_field - 1
-
-    def step(loss):
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-
-    def timed(fn):
-        fn(0)                                   # warm-up
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        for b in range(1, args.batches + 1):
-            fn(b)
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-        return (time.perf_counter() - t0) / args.batches
-
-    # sequence level: exolan's training path
-    cfg = TrainConfig(batch_size=args.batch_size)
-    ch = make_chunks(trials, W, cfg.chunk_steps, cfg.horizon).to(dev)
-    per_batch = max(1, cfg.batch_size // cfg.chunk_steps)
-    K = ch.q.shape[0]
-    gen = torch.Generator().manual_seed(0)
-    perm = torch.randperm(K, generator=gen)
-    one = torch.ones(2, device=dev)
-
-    def seq_batch(b):
-        idx = perm[(b * per_batch) % K:][:per_batch].to(dev)
-        step(batch_losses(model, ch, idx, cfg, one, one, desc["dt"], gen)["loss"])
-
-    t_seq = timed(seq_batch)
-    batches_seq = -(-K // per_batch)
-
-    # windowed: a fresh TCN pass over the 63-step window of every sample
-    wb = {k: v.to(dev) for k, v in windowed_batches(trials, W).items()}
-    N = len(wb["pos"])
-    order = torch.randperm(N, generator=gen)
-    offs = torch.arange(-W, 1, device=dev)
-
-    def win_batch(b):
-        sel = order[(b * args.batch_size) % N:][:args.batch_size].to(dev)
-        rows = wb["pos"][sel].unsqueeze(1) + offs                      # (B, 63)
-        z = model.context(wb["ctx"][rows], wb["keep"][rows])[:, -1]
-        g = lambda k: wb[k][sel]
-        tau_hat = model.inverse(g("q"), g("qd"), g("qdd"), z, g("f_v"))
-        mask = torch.ones(len(sel), dtype=torch.bool, device=dev)
-        step(torque_loss(tau_hat, g("tau"), g("mass"), mask))
-
-    t_win = timed(win_batch)
-    batches_win = -(-N // args.batch_size)
-
-    e_seq, e_win = t_seq * batches_seq, t_win * batches_win
-    print(f"sequence-level encoder: {t_seq * 1e3:8.1f} ms/batch x {batches_seq} batches = {e_seq:8.1f} s/epoch")
-    print(f"windowed encoder:       {t_win * 1e3:8.1f} ms/batch x {batches_win} batches = {e_win:8.1f} s/epoch")
-    print(f"ratio windowed / sequence-level epoch time: {e_win / e_seq:.2f}x")
+        print(f"simulating the training split into {data} (once) ...", flush=True)
+        simulate(data, users=21, tasks="train", seconds=6.0, progress=True)
+    trees = {"this tree": ROOT}
+    if args.against:
+        trees[args.against] = tree_of(args.against)
+    threads = [int(t) for t in args.threads.split(",")]
+    configs = [c for c in args.configs.split(",") if c]
+    best: dict[tuple, float] = {}
+    for r in range(args.repeats):
+        for config in configs:
+            for th in threads:
+                for name, tree in trees.items():
+                    m = measure(tree, str(data), config, th, args.batches, args.batch_size)
+                    key = (config, th, name)
+                    best[key] = max(best.get(key, 0.0), m["samples_per_s"])
+                    print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:10s} "
+                          f"{m['samples_per_s']:9.0f} samples/s ({m['ms_per_batch']:.0f} ms/batch)", flush=True)
+    print(f"\nbest of {args.repeats}, batch {args.batch_size}, samples/s (higher is better):")
+    rows = []
+    for config in configs:
+        for th in threads:
+            new = best[(config, th, "this tree")]
+            line = f"  {config:22s} {th} thr  this tree {new:9.0f}"
+            row = dict(config=config, threads=th, this_tree=new)
+            if args.against:
+                old = best[(config, th, args.against)]
+                line += f"   {args.against} {old:9.0f}   ratio {new / old:5.2f}x"
+                row.update(old=old, ratio=new / old)
+            print(line)
+            rows.append(row)
+    if args.json:
+        Path(args.json).write_text(json.dumps(dict(against=args.against, batch=args.batch_size, rows=rows), indent=1))
 
 
 if __name__ == "__main__":

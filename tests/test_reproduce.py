@@ -264,6 +264,21 @@ def test_paired_statistics():
     assert report._holds(r, +0.05) == "reversed (significant)"
 
 
+def test_verdict_needs_a_size_that_matters():
+    from exolan.report import verdict
+    # the small scale's multi-step result: -0.4 % at p < 0.05 where the paper has -93 %: not a result
+    assert verdict(-0.004, 0.01, -0.93) == "same direction, negligible"
+    assert verdict(-0.30, 0.01, -0.93) == "holds"                       # ≥ a quarter of -93 %
+    assert verdict(-0.22, 0.01, -0.93) == "same direction, negligible"  # < 23.25 %
+    assert verdict(-0.30, 0.20, -0.93) == "same direction, not significant"
+    assert verdict(+0.031, 0.01, -0.07) == "reversed (significant)"
+    assert verdict(+0.031, 0.30, -0.07) == "reversed, not significant"
+    # direction-only claims (LIM improves a model): at least 5 %
+    assert verdict(-0.04, 0.001, None) == "same direction, negligible"
+    assert verdict(-0.06, 0.001, None) == "holds"
+    assert verdict(float("nan"), 0.01, -0.5) == "n/a"
+
+
 @pytest.mark.ray
 def test_ray_path_gives_the_local_numbers(tiny_serial, fake_real, tmp_path):
     ray = pytest.importorskip("ray", reason="optional dependency ray not installed (pip install exolan[ray])")

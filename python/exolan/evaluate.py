@@ -13,7 +13,8 @@ import numpy as np
 import torch
 
 from .rollout import free_rollout, rollout
-from .runio import write_json
+from .data import context_features, load, paper_split
+from .runio import load_run, write_json
 
 HORIZONS = (4, 10, 20)
 
@@ -28,13 +29,11 @@ def _device(model) -> torch.device:
 
 def trial_tensors(model, trial) -> dict:
     """The trial's arrays as tensors of the model's dtype (invalid samples zeroed) and its z sequence."""
-    from .train import context_of
-
     dt, dev = _dtype(model), _device(model)
     valid = np.asarray(trial.valid, dtype=bool)
     clean = lambda a: torch.as_tensor(np.where(valid.reshape(-1, *([1] * (np.ndim(a) - 1))), a, 0.0),
                                       dtype=dt, device=dev)
-    ctx = torch.as_tensor(context_of(trial), dtype=dt, device=dev)
+    ctx = torch.as_tensor(np.asarray(context_features(trial), dtype=np.float64), dtype=dt, device=dev)
     with torch.no_grad():
         z = model.context(ctx.unsqueeze(0))[0]
     return dict(q=clean(trial.q), qd=clean(trial.qd), qdd=clean(trial.qdd), tau=clean(trial.tau),
@@ -261,12 +260,8 @@ def evaluate_run(run_dir, data, horizons: Sequence[int] = HORIZONS, threads: int
 
 
 def _evaluate_run(run_dir, data, horizons) -> dict:
-    from .train import load_run
-
     model, meta = load_run(run_dir)
     if isinstance(data, (str, Path)):
-        from .data import load, paper_split
-
         split = paper_split(load(data))
     else:
         split = data

@@ -40,10 +40,8 @@ import hashlib
 import importlib
 import io
 import json
-import math
 import os
 import shutil
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -53,137 +51,8 @@ from typing import Any
 import numpy as np
 
 from .runio import atomic_write, write_json
-
-# --------------------------------------------------------------------------------------------------
-# Methods and tasks
-# --------------------------------------------------------------------------------------------------
-
-ARCHITECTURES = ("exolan", "delan-lstm", "mlp-tcn", "mlp-lstm", "tcn", "lstm", "delan", "mlp")
-DELAN_BASED = ("exolan", "delan-lstm", "delan")
-LABELS = {
-    "exolan": "ExoLaN (DeLaN-TCN)", "delan-lstm": "DeLaN-LSTM", "mlp-tcn": "MLP-TCN", "mlp-lstm": "MLP-LSTM",
-    "tcn": "TCN", "lstm": "LSTM", "delan": "DeLaN", "mlp": "MLP",
-}
-# Tasks whose torque trajectories the paper shows (and quotes per-task MSE for).
-PLOT_TASKS = ("calisthenics", "run", "squat", "ball_toss")
-
-# Fallback grouping when the world does not say which tasks are cyclic: periodic locomotion-like tasks.
-_CYCLIC_WORDS = ("walk", "run", "stair", "incline", "decline", "shuffle", "skip", "hop", "jog", "sprint",
-                 "treadmill", "backward", "lunge_walk", "step")
-
-
-def method_name(arch: str, lim: bool) -> str:
-    return arch + ("" if lim else "-nolim")
-
-
-def method_label(arch: str, lim: bool) -> str:
-    return LABELS[arch] + (" + LIM" if lim else "")
-
-
-# --------------------------------------------------------------------------------------------------
-# Scales
-# --------------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Scale:
-    name: str
-    # world (ignored with --data)
-    users: int = 21
-    tasks: str = "all"               # passed to `exolan simulate --tasks`
-    seconds: float | None = None     # per trial; None = the world's per-task default
-    world_seed: int = 0
-    # training
-    epochs: int = 1000
-    seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
-    architectures: tuple[str, ...] = ARCHITECTURES
-    lims: tuple[bool, ...] = (True, False)
-    batch_size: int = 8192           # paper: 8192; smaller worlds use smaller batches to get more updates
-    fd_study: bool = True
-    w_fd: float = 0.01
-    w_ms: float = 1.0
-    # evaluation
-    rollout_stride: int = 5          # a rollout starts every `rollout_stride` samples of held-out data
-    horizons: tuple[int, ...] = (4, 10, 20)
-    taskid_per_trial: int = 2000     # context samples per training trajectory fed to the task classifier
-    taskid_epochs: int = 1000
-    real: bool = True                # run the real-recordings section when the data are found
-    real_epochs: int | None = None   # None = `epochs`
-    real_seeds: tuple[int, ...] | None = None
-    real_batch_size: int = 1024      # the real set has ~12k training samples
-
-
-SCALES: dict[str, Scale] = {
-    # Test-only: seconds of work, proves the orchestration end to end (not a study).
-    "tiny": Scale("tiny", users=6, tasks="walk,stand,calisthenics,push_pull,jump_in_place,turn,cut,run,squat",
-                  seconds=2.0, epochs=2, seeds=(0, 1), architectures=("exolan", "mlp-tcn", "tcn"), batch_size=2048,
-                  lims=(True, False), rollout_stride=50, taskid_per_trial=60, taskid_epochs=5,
-                  real=False),
-    # Test-only: the real models in the fewest runs that still fill every table (one seed).
-    "micro": Scale("micro", users=3, tasks="walk,stand,calisthenics,run,squat", seconds=1.5, epochs=1, seeds=(0,),
-                   architectures=("exolan", "mlp-tcn"), lims=(True,), batch_size=1024, rollout_stride=40,
-                   taskid_per_trial=50, taskid_epochs=5, real=True, real_epochs=1, real_seeds=(0,)),
-    # Fits ~15 min on 2 shared cores: the full method grid on a reduced world and few epochs.
-    "small": Scale("small", users=21, tasks="all", seconds=2.0, epochs=3, seeds=(0, 1), batch_size=1024,
-                   rollout_stride=25, taskid_per_trial=100, taskid_epochs=50, real_epochs=10,
-                   real_seeds=(0, 1)),
-    # A few hours on an 8-16 core machine or one GPU (measured cost of `small`, scaled by samples x epochs).
-    "medium": Scale("medium", users=21, tasks="all", seconds=6.0, epochs=30, seeds=(0, 1, 2), batch_size=2048,
-                    rollout_stride=10, taskid_per_trial=500, taskid_epochs=200, real_epochs=100,
-                    real_seeds=(0, 1, 2)),
-    # The paper's protocol: full default world, 1000 epochs, 5 seeds.
-    "paper": Scale("paper"),
-}
-
-
-# --------------------------------------------------------------------------------------------------
-# Run specifications
-# --------------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class RunSpec:
-    dataset: str        # "world" (simulated or --data) or "real"
-    arch: str
-    lim: bool
-    w_fd: float
-    w_ms: float
-    seed: int
-    epochs: int
-    batch_size: int = 8192
-
-    @property
-    def run_id(self) -> str:
-        # The id is the training configuration only, so that a configuration shared by two studies
-        # (ExoLaN + LIM, inverse loss only = the FD study's first row) is trained once.
-        return (f"{self.dataset}/{method_name(self.arch, self.lim)}_fd{self.w_fd:g}_ms{self.w_ms:g}"
-                f"_e{self.epochs}{'' if self.batch_size == 8192 else f'_b{self.batch_size}'}_s{self.seed}")
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
-    specs: list[RunSpec] = []
-    for seed in scale.seeds:
-        for arch in scale.architectures:
-            for lim in scale.lims:
-                specs.append(RunSpec("world", arch, lim, 0.0, 0.0, seed, scale.epochs, scale.batch_size))
-        if scale.fd_study:
-            specs.append(RunSpec("world", "exolan", True, scale.w_fd, 0.0, seed, scale.epochs, scale.batch_size))
-            specs.append(RunSpec("world", "exolan", True, scale.w_fd, scale.w_ms, seed, scale.epochs,
-                                 scale.batch_size))
-    if with_real:
-        for seed in scale.real_seeds or scale.seeds:
-            for arch in scale.architectures:
-                specs.append(RunSpec("real", arch, True, 0.0, 0.0, seed, scale.real_epochs or scale.epochs,
-                                     scale.real_batch_size))
-    seen = set()
-    unique = []
-    for s in specs:
-        if s.run_id not in seen:
-            seen.add(s.run_id)
-            unique.append(s)
-    return unique
-
+from .study import PLOT_TASKS, SCALES, RunSpec, Scale, _normalise_groups, plan, real_split
+from . import report
 
 # --------------------------------------------------------------------------------------------------
 # Backends
@@ -226,31 +95,14 @@ class RealBackend:
         if spec.w_fd:
             extra["w_fd"] = spec.w_fd
         if spec.w_ms:
-            extra["w_ms"] = spec.w_ms
+            extra.update(w_ms=spec.w_ms, ms_norm=spec.ms_norm)
+        if spec.patience:
+            extra.update(patience=spec.patience, val_users=spec.val_users)
         tr.train(list(train_trials), method=spec.arch, lim=spec.lim, epochs=spec.epochs, seed=spec.seed,
                  out=run_dir, resume=True, progress=False, device=device, threads=threads,
                  batch_size=spec.batch_size, **extra)
         model, _ = tr.load_run(run_dir, device="cpu")
         return model
-
-
-def _normalise_groups(obj: dict) -> dict[str, str]:
-    # accept {task: group} or {group: [tasks]}
-    out: dict[str, str] = {}
-    for k, v in obj.items():
-        if isinstance(v, (list, tuple, set)):
-            for t in v:
-                out[str(t)] = str(k)
-        else:
-            out[str(k)] = str(v)
-    return out
-
-
-def is_cyclic(task: str, groups: dict[str, str]) -> bool:
-    g = groups.get(task)
-    if g is not None:
-        return g.lower().startswith("cyclic")
-    return any(w in task for w in _CYCLIC_WORDS)
 
 
 def get_backend(path: str | None = None):
@@ -259,66 +111,6 @@ def get_backend(path: str | None = None):
         return RealBackend()
     mod, cls = path.split(":")
     return getattr(importlib.import_module(mod), cls)()
-
-
-# --------------------------------------------------------------------------------------------------
-# Data splits
-# --------------------------------------------------------------------------------------------------
-
-REAL_TRAIN_TASKS = ("walk", "walk_trunk_sway", "walk_toe_in", "walk_toe_out", "squat", "sit_to_stand",
-                    "drop_jump", "stand")
-REAL_TRAIN_SUBJECT = "REAL01"
-REAL_TAIL = 0.3  # single-repetition seen tasks: the last 30 % of the trial is held out
-
-
-def real_split(trials) -> tuple[list, dict[str, list]]:
-    """The real recordings have 5 people, one of whom (REAL01) has 24 of 28 trials, so the paper's
-    14/7 user split is impossible. Split used here (documented in the report):
-
-    * train: REAL01, tasks walk(+trunk sway, toe in, toe out), squat, sit_to_stand, drop_jump, stand,
-      repetitions 1-2 where a task has three, else the first 70 % of the trial;
-    * seen: the same tasks of REAL01, repetition 3 or the last 30 % of the trial (unseen time);
-    * unseen_task: REAL01's asymmetric / weak-legs variants (squat_asym, sit_to_stand_asym,
-      sit_to_stand_weak_legs, drop_jump_asym) -- a known person doing tasks not trained on;
-    * unseen_user: REAL02-REAL05 (fast walking, sprint, overground walk, treadmill walk).
-    """
-    train, seen, unseen_task, unseen_user = [], [], [], []
-    reps: dict[str, set] = {}
-    for tr in trials:
-        if tr.subject == REAL_TRAIN_SUBJECT:
-            reps.setdefault(tr.task, set()).add(_rep(tr.name))
-    for tr in trials:
-        if tr.subject != REAL_TRAIN_SUBJECT:
-            unseen_user.append(tr)
-        elif tr.task not in REAL_TRAIN_TASKS:
-            unseen_task.append(tr)
-        elif len(reps[tr.task]) >= 2:
-            (seen if _rep(tr.name) == max(reps[tr.task]) else train).append(tr)
-        else:
-            T = len(tr.q)
-            cut = int(round(T * (1 - REAL_TAIL)))
-            train.append(slice_trial(tr, 0, cut))
-            seen.append(slice_trial(tr, cut, T))
-    return train, {"seen": seen, "unseen_task": unseen_task, "unseen_user": unseen_user}
-
-
-def _rep(name: str) -> int:
-    parts = name.rsplit("_", 2)
-    try:
-        return int(parts[-2])
-    except (ValueError, IndexError):
-        return 1
-
-
-def slice_trial(tr, a: int, b: int):
-    """A time segment of a trial (arrays sliced, metadata kept). The context encoder restarts from zero
-    state at the segment's start, as for any trial."""
-    changes = {}
-    for f in dataclasses.fields(tr):
-        v = getattr(tr, f.name)
-        if isinstance(v, np.ndarray) and v.ndim >= 1 and len(v) == len(tr.q):
-            changes[f.name] = v[a:b]
-    return dataclasses.replace(tr, **changes)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -380,7 +172,8 @@ def _run_job(spec_d: dict, ctx_d: dict) -> dict:
     dtype = _model_dtype(model)
 
     t1 = time.perf_counter()
-    result: dict[str, Any] = {"spec": spec.to_dict(), "run_id": spec.run_id, "train_seconds": t_train}
+    result: dict[str, Any] = {"spec": spec.to_dict(), "run_id": spec.run_id, "train_seconds": t_train,
+                              "training": _training_summary(run_dir)}
     arrays: dict[str, np.ndarray] = {}
     rows = []
     zcache = {}
@@ -410,6 +203,16 @@ def _run_job(spec_d: dict, ctx_d: dict) -> dict:
     np.savez_compressed(buf, **arrays)
     result["_arrays"] = buf.getvalue() if arrays else None
     return result
+
+
+def _training_summary(run_dir: Path) -> dict:
+    """Epochs run, the best epoch (early stopping) and each loss term's gradient norm per epoch."""
+    run = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").exists() else {}
+    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()] \
+        if (run_dir / "metrics.jsonl").exists() else []
+    gn = {k: [r.get(k) for r in rows] for k in ("gn_tau", "gn_fd", "gn_ms") if any(k in r for r in rows)}
+    return dict(epochs=run.get("epochs"), best_epoch=run.get("best_epoch"), stopped_early=run.get("stopped_early"),
+                grad_norms=gn)
 
 
 def _model_dtype(model):
@@ -447,14 +250,39 @@ def _forward(model, q, qd, tau, z, f_v):
 
 def _fd_metrics(model, items, dtype, scale: Scale) -> list[dict]:
     """Per trial: q̈ MSE on every valid sample, and open-loop rollout errors (semi-implicit Euler with the
-    recorded τ, z and f_v, DESIGN section 5) from start points every `rollout_stride` samples. The rollouts
-    of all trials run as one batch (a few forward-dynamics calls instead of thousands)."""
-    import torch
+    recorded τ, z and f_v, DESIGN section 5) from start points every `rollout_stride` samples."""
+    def forward(q, qd, tau, z, fv, cop_x, owner):
+        return _forward(model, _t(q, dtype), _t(qd, dtype), _t(tau, dtype), _t(z, dtype), _t(fv, dtype)).double().numpy()
+
+    return rollout_metrics(forward, [(split, tr, z.double().numpy()) for split, tr, z in items], scale)
+
+
+def reference_fd_rows(items, legs: dict, scale: Scale) -> list[dict]:
+    """`_fd_metrics` of the world's true leg fed the recorded signals (exolan.world.reference)."""
+    from exolan.world import reference
+
+    params = [legs[tr.subject] for _, tr, _ in items]
+
+    def forward(q, qd, tau, z, fv, cop_x, owner):
+        out = np.empty_like(q)
+        for j in np.unique(owner):                     # one leg per trial
+            m = owner == j
+            out[m] = reference.forward(params[j], q[m], qd[m], tau[m], fv[m], cop_x[m])
+        return out
+
+    return rollout_metrics(forward, items, scale)
+
+
+def rollout_metrics(forward, items, scale: Scale) -> list[dict]:
+    """q̈ MSE and open-loop rollout errors of any forward dynamics `forward(q, qd, tau, z, f_v, cop_x, owner)`
+    -> q̈ (numpy rows; `owner` = each row's item index). The rollouts of all trials run as one batch (a few
+    forward-dynamics calls instead of thousands)."""
     H = max(scale.horizons)
-    rows, Q0, QD0, TAU, Z, FV, QT, QDT, owner = [], [], [], [], [], [], [], [], []
+    rows, Q0, QD0, TAU, Z, FV, CX, QT, QDT, owner = [], [], [], [], [], [], [], [], [], []
     for j, (split, tr, z) in enumerate(items):
-        q, qd, tau, fv = (_t(a, dtype) for a in (tr.q, tr.qd, tr.tau, tr.f_v))
-        qdd_hat = _forward(model, q, qd, tau, z, fv).double().numpy()
+        z = np.zeros((len(tr.q), 0)) if z is None else z
+        cx = tr.cop[:, 0]
+        qdd_hat = forward(tr.q, tr.qd, tr.tau, z, tr.f_v, cx, np.full(len(tr.q), j))
         ok = tr.valid
         e = (qdd_hat - tr.qdd) ** 2
         n_j = tr.q.shape[1]
@@ -472,26 +300,26 @@ def _fd_metrics(model, items, dtype, scale: Scale) -> list[dict]:
             continue
         w = starts[:, None] + np.arange(H + 1)[None]
         Q0.append(tr.q[starts]); QD0.append(tr.qd[starts])
-        TAU.append(tr.tau[w[:, :H]]); FV.append(tr.f_v[w[:, :H]]); Z.append(z.double().numpy()[w[:, :H]])
+        TAU.append(tr.tau[w[:, :H]]); FV.append(tr.f_v[w[:, :H]]); Z.append(z[w[:, :H]]); CX.append(cx[w[:, :H]])
         QT.append(tr.q[w]); QDT.append(tr.qd[w])
         owner.append(np.full(len(starts), j))
     if not owner:
         return rows
-    Q0, QD0, TAU, FV, Z, QT, QDT, owner = (np.concatenate(a) for a in (Q0, QD0, TAU, FV, Z, QT, QDT, owner))
+    Q0, QD0, TAU, FV, Z, CX, QT, QDT, owner = (np.concatenate(a) for a in (Q0, QD0, TAU, FV, Z, CX, QT, QDT, owner))
     dt = float(items[0][1].dt)
     for a in range(0, len(owner), 20000):  # bounded memory on the paper's world
         sl = slice(a, a + 20000)
-        qs, qds = _t(Q0[sl], dtype), _t(QD0[sl], dtype)
-        tau_b, fv_b, z_b = _t(TAU[sl], dtype), _t(FV[sl], dtype), _t(Z[sl], dtype)
+        qs, qds = Q0[sl], QD0[sl]
         for k in range(H):
-            qdd_k = _forward(model, qs, qds, tau_b[:, k], z_b[:, k], fv_b[:, k])
+            qdd_k = forward(qs, qds, TAU[sl, k], Z[sl, k], FV[sl, k], CX[sl, k], owner[sl])
             qds = qds + dt * qdd_k
             qs = qs + dt * qds
             h = k + 1
             if h not in scale.horizons:
                 continue
-            eq = (qs.double().numpy() - QT[sl, h]) ** 2
-            eqd = (qds.double().numpy() - QDT[sl, h]) ** 2
+            with np.errstate(over="ignore", invalid="ignore"):
+                eq = (qs - QT[sl, h]) ** 2
+                eqd = (qds - QDT[sl, h]) ** 2
             bad = ~(np.isfinite(eq).all(1) & np.isfinite(eqd).all(1))
             # diverged rollouts count as infinite error: dropping them would flatter the model
             eq[bad] = np.inf
@@ -790,12 +618,29 @@ def ensure_world(out: Path, scale: Scale, backend) -> Path:
     return world
 
 
+def world_reference(out: Path, scale: Scale, backend, data_dir: Path) -> list[dict] | None:
+    """Rollout errors of the world's true leg fed the recorded signals on the held-out trials
+    (exolan.world.reference), for the forward-dynamics table; cached in out/reference.json. None for a backend
+    that did not simulate exolan's world."""
+    if not isinstance(backend, RealBackend):
+        return None
+    path = out / "reference.json"
+    if path.exists():
+        return json.loads(path.read_text())
+    from .world.reference import true_legs
+
+    _, seen, unseen = backend.split(backend.load(str(data_dir)))
+    items = [("seen", t, None) for t in seen] + [("unseen", t, None) for t in unseen]
+    rows = reference_fd_rows(items, true_legs(scale.users, scale.world_seed), scale)
+    write_json(path, rows, indent=None)
+    return rows
+
+
 def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers: int | None = None,
               ray_address: str | None = None, real_dir: str | None = "auto", backend: str | None = None,
               device: str | None = None, log=print, write_report: bool = True) -> dict:
     """Run (or resume) the sweep and write the report; returns the results dictionary
     (without the report, `write_report=False`: the runs' results by run id)."""
-    from . import report as rep
     scale = SCALES[scale_name]
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -828,16 +673,17 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
     execute(specs, ctx, workers, ray_address, log=log)
     t_runs = time.perf_counter() - t1
     results = {s.run_id: load_result(out, s) for s in specs if _done(out, s, ctx)}
+    reference = world_reference(out, scale, be, data_dir) if data is None and scale.fd_study else None
     missing = [s.run_id for s in specs if s.run_id not in results]
     specs = [s for s in specs if s.run_id in results]
     meta = {"scale": dataclasses.asdict(scale), "data": str(data_dir), "real_data": real_dir,
             "workers": workers, "threads_per_worker": threads, "device": device,
             "executor": f"ray {ray_address}" if ray_address else "local process pool",
             "seconds": {"world": t_world, "runs": t_runs}, "task_groups": ctx.groups,
-            "n_runs": len(specs), "failed_runs": missing}
+            "n_runs": len(specs), "failed_runs": missing, "reference_fd_rows": reference}
     if not write_report:
         return results
-    summary = rep.build(out, scale, specs, results, meta, log=log)
+    summary = report.build(out, scale, specs, results, meta, log=log)
     meta["seconds"]["total"] = time.perf_counter() - t0
     log(f"[reproduce] done in {meta['seconds']['total']:.0f}s: {out / 'report.md'}")
     return summary

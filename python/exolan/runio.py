@@ -80,3 +80,27 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> Non
 
 def write_jsonl(path: str | os.PathLike, rows: list) -> None:
     atomic_write(path, "".join(json.dumps(jsonable(r), allow_nan=False) + "\n" for r in rows))
+
+
+CHECKPOINT = "checkpoint.pt"
+
+
+def load_run(run_dir: str | os.PathLike, device: str = "cpu"):
+    """A training run directory's model (eval mode, on `device`) and its meta dict (config, spec, norm, run,
+    metrics, epoch, dt). The model classes are imported here, not at module level: writing JSON needs no torch."""
+    import torch
+
+    from .models import build_model
+
+    rd = Path(run_dir)
+    spec = json.loads((rd / "model.json").read_text())
+    model = build_model(**spec)
+    ck = torch.load(rd / CHECKPOINT, map_location="cpu", weights_only=False)
+    model.load_state_dict(ck["model"])
+    model.to(device).eval()
+    meta = dict(config=json.loads((rd / "config.json").read_text()), spec=spec,
+                norm=json.loads((rd / "norm.json").read_text()),
+                run=json.loads((rd / "run.json").read_text()) if (rd / "run.json").exists() else {},
+                metrics=ck["metrics"], epoch=ck["epoch"])
+    meta["dt"] = meta["norm"]["dt"]
+    return model, meta

@@ -40,9 +40,10 @@ from .config import TrainConfig, load_config, merge
 from .losses import acceleration_loss, multistep_loss, torque_loss
 from .models import ExoModel, build_model
 from .rollout import rollout
-from .runio import atomic_torch_save, jsonable, write_json, write_jsonl
+from .data import context_channels, context_features, load, paper_split
+from .evaluate import physics_check, torque_errors
+from .runio import CHECKPOINT, atomic_torch_save, jsonable, load_run, write_json, write_jsonl  # noqa: F401 (load_run: train's API)
 
-CHECKPOINT = "checkpoint.pt"
 # config keys that may differ on --resume: none of them changes the weights an epoch produces
 # (epochs only extends the run; the per-epoch generators do not depend on it)
 _RESUMABLE_CHANGES = ("epochs", "device", "threads", "val_every", "checkpoint_every", "physics_check")
@@ -53,8 +54,6 @@ _RESUMABLE_CHANGES = ("epochs", "device", "threads", "val_every", "checkpoint_ev
 def resolve_data(data_or_split) -> tuple[list, list, str | None]:
     """(train trials, validation trials, data path) from a directory, a Split or a list of Trials."""
     if isinstance(data_or_split, (str, os.PathLike)):
-        from .data import load, paper_split
-
         split = paper_split(load(data_or_split))
         return list(split.train), list(split.test_seen), str(data_or_split)
     if hasattr(data_or_split, "train"):
@@ -63,14 +62,10 @@ def resolve_data(data_or_split) -> tuple[list, list, str | None]:
 
 
 def context_of(trial) -> np.ndarray:
-    from .data import context_features
-
     return np.asarray(context_features(trial), dtype=np.float64)
 
 
 def channels_of(trial) -> list[str]:
-    from .data import context_channels
-
     return list(context_channels(trial))
 
 
@@ -282,22 +277,6 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def load_run(run_dir: str | Path, device: str = "cpu") -> tuple[ExoModel, dict]:
-    """(model in eval mode, float32, on `device`; meta dict with config, spec, norm, run, metrics, dt)."""
-    rd = Path(run_dir)
-    spec = json.loads((rd / "model.json").read_text())
-    model = build_model(**spec)
-    ck = torch.load(rd / CHECKPOINT, map_location="cpu", weights_only=False)
-    model.load_state_dict(ck["model"])
-    model.to(device).eval()
-    meta = dict(config=json.loads((rd / "config.json").read_text()), spec=spec,
-                norm=json.loads((rd / "norm.json").read_text()),
-                run=json.loads((rd / "run.json").read_text()) if (rd / "run.json").exists() else {},
-                metrics=ck["metrics"], epoch=ck["epoch"])
-    meta["dt"] = meta["norm"]["dt"]
-    return model, meta
-
-
 # -- training --------------------------------------------------------------------------------------
 
 def train(data_or_split, method: str | None = None, lim: bool | None = None, epochs: int | None = None,
@@ -421,8 +400,6 @@ class EarlyStop:
 
 def _run_inner(cfg: TrainConfig, train_trials, test_trials, data_path, out: Path, resume: bool,
                progress: bool) -> Path:
-    from .evaluate import torque_errors
-
     out.mkdir(parents=True, exist_ok=True)
     ck_path = out / CHECKPOINT
     if ck_path.exists() and not resume:
@@ -534,8 +511,6 @@ def _finish(cfg, model, stopper, metrics, check_trials, out: Path, run_info: dic
     if model.is_lagrangian and cfg.physics_check:
         # the physics check every user wants: H positive definite with its condition number range on the
         # data, and the energy of the free conservative model under the integrator
-        from .evaluate import physics_check
-
         model.eval()
         phys = physics_check(model, check_trials, max_samples=20000, n_rollouts=16)
         phys["on"] = on
