@@ -251,38 +251,44 @@ def _forward(model, q, qd, tau, z, f_v):
 def _fd_metrics(model, items, dtype, scale: Scale) -> list[dict]:
     """Per trial: q̈ MSE on every valid sample, and open-loop rollout errors (semi-implicit Euler with the
     recorded τ, z and f_v, DESIGN section 5) from start points every `rollout_stride` samples."""
-    def forward(q, qd, tau, z, fv, cop_x, owner):
+    def forward(q, qd, tau, z, fv, cop_x, owner, t):
         return _forward(model, _t(q, dtype), _t(qd, dtype), _t(tau, dtype), _t(z, dtype), _t(fv, dtype)).double().numpy()
 
     return rollout_metrics(forward, [(split, tr, z.double().numpy()) for split, tr, z in items], scale)
 
 
-def reference_fd_rows(items, legs: dict, scale: Scale) -> list[dict]:
-    """`_fd_metrics` of the world's true leg fed the recorded signals (exolan.world.reference)."""
+def reference_fd_rows(items, scale: Scale, mode: str) -> list[dict]:
+    """`_fd_metrics` of the world's true leg under one of exolan.world.reference.MODES of inputs."""
     from exolan.world import reference
 
-    params = [legs[tr.subject] for _, tr, _ in items]
+    if mode == "recorded":
+        legs = reference.true_legs(scale.users, scale.world_seed)
+        params = [legs[tr.subject] for _, tr, _ in items]
+    else:
+        truths = [reference.TrueTrial(scale.users, scale.world_seed, scale.seconds, tr.subject, tr.task, tr.side)
+                  for _, tr, _ in items]
 
-    def forward(q, qd, tau, z, fv, cop_x, owner):
+    def forward(q, qd, tau, z, fv, cop_x, owner, t):
         out = np.empty_like(q)
         for j in np.unique(owner):                     # one leg per trial
             m = owner == j
-            out[m] = reference.forward(params[j], q[m], qd[m], tau[m], fv[m], cop_x[m])
+            out[m] = (reference.recorded_forward(params[j], q[m], qd[m], tau[m], fv[m], cop_x[m]) if mode == "recorded"
+                      else truths[j].forward(q[m], qd[m], tau[m], t[m], mode == "true inputs"))
         return out
 
     return rollout_metrics(forward, items, scale)
 
 
 def rollout_metrics(forward, items, scale: Scale) -> list[dict]:
-    """q̈ MSE and open-loop rollout errors of any forward dynamics `forward(q, qd, tau, z, f_v, cop_x, owner)`
-    -> q̈ (numpy rows; `owner` = each row's item index). The rollouts of all trials run as one batch (a few
+    """q̈ MSE and open-loop rollout errors of any forward dynamics `forward(q, qd, tau, z, f_v, cop_x, owner, t)`
+    -> q̈ (numpy rows; `owner` = each row's item index, `t` its sample index in that trial). The rollouts of all trials run as one batch (a few
     forward-dynamics calls instead of thousands)."""
     H = max(scale.horizons)
-    rows, Q0, QD0, TAU, Z, FV, CX, QT, QDT, owner = [], [], [], [], [], [], [], [], [], []
+    rows, Q0, QD0, TAU, Z, FV, CX, QT, QDT, owner, T0 = [], [], [], [], [], [], [], [], [], [], []
     for j, (split, tr, z) in enumerate(items):
         z = np.zeros((len(tr.q), 0)) if z is None else z
         cx = tr.cop[:, 0]
-        qdd_hat = forward(tr.q, tr.qd, tr.tau, z, tr.f_v, cx, np.full(len(tr.q), j))
+        qdd_hat = forward(tr.q, tr.qd, tr.tau, z, tr.f_v, cx, np.full(len(tr.q), j), np.arange(len(tr.q)))
         ok = tr.valid
         e = (qdd_hat - tr.qdd) ** 2
         n_j = tr.q.shape[1]
@@ -303,15 +309,17 @@ def rollout_metrics(forward, items, scale: Scale) -> list[dict]:
         TAU.append(tr.tau[w[:, :H]]); FV.append(tr.f_v[w[:, :H]]); Z.append(z[w[:, :H]]); CX.append(cx[w[:, :H]])
         QT.append(tr.q[w]); QDT.append(tr.qd[w])
         owner.append(np.full(len(starts), j))
+        T0.append(starts)
     if not owner:
         return rows
-    Q0, QD0, TAU, FV, Z, CX, QT, QDT, owner = (np.concatenate(a) for a in (Q0, QD0, TAU, FV, Z, CX, QT, QDT, owner))
+    Q0, QD0, TAU, FV, Z, CX, QT, QDT, owner, T0 = (np.concatenate(a) for a in (Q0, QD0, TAU, FV, Z, CX, QT, QDT, owner,
+                                                                               T0))
     dt = float(items[0][1].dt)
     for a in range(0, len(owner), 20000):  # bounded memory on the paper's world
         sl = slice(a, a + 20000)
         qs, qds = Q0[sl], QD0[sl]
         for k in range(H):
-            qdd_k = forward(qs, qds, TAU[sl, k], Z[sl, k], FV[sl, k], CX[sl, k], owner[sl])
+            qdd_k = forward(qs, qds, TAU[sl, k], Z[sl, k], FV[sl, k], CX[sl, k], owner[sl], T0[sl] + k)
             qds = qds + dt * qdd_k
             qs = qs + dt * qds
             h = k + 1
@@ -618,20 +626,20 @@ def ensure_world(out: Path, scale: Scale, backend) -> Path:
     return world
 
 
-def world_reference(out: Path, scale: Scale, backend, data_dir: Path) -> list[dict] | None:
-    """Rollout errors of the world's true leg fed the recorded signals on the held-out trials
-    (exolan.world.reference), for the forward-dynamics table; cached in out/reference.json. None for a backend
-    that did not simulate exolan's world."""
+def world_reference(out: Path, scale: Scale, backend, data_dir: Path) -> dict[str, list[dict]] | None:
+    """Rollout errors of the world's true leg on the held-out trials under each of exolan.world.reference.MODES
+    of inputs, for the forward-dynamics table; cached in out/reference.json. None for a backend that did not
+    simulate exolan's world."""
     if not isinstance(backend, RealBackend):
         return None
     path = out / "reference.json"
     if path.exists():
         return json.loads(path.read_text())
-    from .world.reference import true_legs
+    from .world.reference import MODES
 
     _, seen, unseen = backend.split(backend.load(str(data_dir)))
     items = [("seen", t, None) for t in seen] + [("unseen", t, None) for t in unseen]
-    rows = reference_fd_rows(items, true_legs(scale.users, scale.world_seed), scale)
+    rows = {mode: reference_fd_rows(items, scale, mode) for mode in MODES}
     write_json(path, rows, indent=None)
     return rows
 
