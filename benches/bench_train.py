@@ -6,7 +6,8 @@ with `--against REV`, the same measurement of the tree at git revision REV in th
 
 Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
 alternating within every repeat so that a busy machine slows both alike; a figure is the best of `--repeats`
-(the least disturbed run). The old tree is checked out once into a git worktree under out/bench_trees/.
+(the least disturbed run). The old tree is checked out once into a git worktree under out/bench_trees/ and,
+at 2 threads, also measured with this tree's OpenMP wait policy (exolan sets OMP_WAIT_POLICY=PASSIVE).
 Without --data it simulates the paper's training split (21 users x the 7 training tasks, 6 s per trial) into
 out/bench_world once. A benchmark script, not a test.
 """
@@ -30,6 +31,7 @@ CONFIGS = {
 
 def worker(data: str, config: str, threads: int, batches: int, batch_size: int) -> dict:
     """One measurement with whatever `exolan` is importable (this tree's or the old one's)."""
+    import exolan  # noqa: F401  (first: a tree's own settings apply before torch loads)
     import torch
 
     torch.set_num_threads(threads)
@@ -58,7 +60,6 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int) 
     n_samples = 0
 
     def step(b):
-        nonlocal n_samples
         idx = perm[(b * per) % K:][:per]
         loss = batch_losses(model, ch, idx, cfg, one, one, desc["dt"], gen)["loss"]
         opt.zero_grad(set_to_none=True)
@@ -88,8 +89,12 @@ def tree_of(rev: str) -> Path:
     return d
 
 
-def measure(tree: Path, data: str, config: str, threads: int, batches: int, batch_size: int) -> dict:
+def measure(tree: Path, data: str, config: str, threads: int, batches: int, batch_size: int,
+            wait_policy: str | None = None) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree / "python"), OMP_NUM_THREADS=str(threads))
+    env.pop("OMP_WAIT_POLICY", None)                   # each tree as it ships, unless asked otherwise
+    if wait_policy:
+        env["OMP_WAIT_POLICY"] = wait_policy
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", config, "--data", data,
            "--threads", str(threads), "--batches", str(batches), "--batch-size", str(batch_size)]
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
@@ -117,17 +122,22 @@ def main() -> None:
 
         print(f"simulating the training split into {data} (once) ...", flush=True)
         simulate(data, users=21, tasks="train", seconds=6.0, progress=True)
-    trees = {"this tree": ROOT}
+    trees = {"this tree": (ROOT, None)}
     if args.against:
-        trees[args.against] = tree_of(args.against)
+        old = tree_of(args.against)
+        trees[args.against] = (old, None)
+        # the old tree with this tree's OpenMP wait policy: how much of a multi-thread gain is code
+        trees[args.against + "+passive"] = (old, "PASSIVE")
     threads = [int(t) for t in args.threads.split(",")]
     configs = [c for c in args.configs.split(",") if c]
     best: dict[tuple, float] = {}
     for r in range(args.repeats):
         for config in configs:
             for th in threads:
-                for name, tree in trees.items():
-                    m = measure(tree, str(data), config, th, args.batches, args.batch_size)
+                for name, (tree, policy) in trees.items():
+                    if policy and th == 1:
+                        continue                       # one thread never waits for another
+                    m = measure(tree, str(data), config, th, args.batches, args.batch_size, policy)
                     key = (config, th, name)
                     best[key] = max(best.get(key, 0.0), m["samples_per_s"])
                     print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:10s} "
@@ -143,6 +153,10 @@ def main() -> None:
                 old = best[(config, th, args.against)]
                 line += f"   {args.against} {old:9.0f}   ratio {new / old:5.2f}x"
                 row.update(old=old, ratio=new / old)
+                oldp = best.get((config, th, args.against + "+passive"))
+                if oldp:
+                    line += f"   (vs {args.against} with OMP_WAIT_POLICY=PASSIVE {oldp:9.0f}: {new / oldp:5.2f}x)"
+                    row.update(old_passive=oldp, ratio_passive=new / oldp)
             print(line)
             rows.append(row)
     if args.json:

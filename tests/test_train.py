@@ -200,3 +200,51 @@ def test_config_object_is_not_overridden_by_defaults(tiny, tmp_path):
     assert spec["method"] == "mlp" and spec["lim"] is False
     conf = TrainConfig.from_dict(json.loads((rd / "config.json").read_text()))
     assert conf.batch_size == 4096 and conf.epochs == 1
+
+
+def test_early_stopping_keeps_the_best_validation_epoch_of_training_users_only(split, tmp_path):
+    """patience 1 with a learning rate that makes the validation loss worsen: the run stops early, keeps the best
+    epoch's weights (the last epoch's stay as final_model), and the validation users are training users."""
+    rd = train(list(split.train), "exolan", epochs=12, seed=0, out=tmp_path / "es", progress=False,
+               batch_size=1024, threads=1, lr=0.05, patience=1, val_users=2, val_every=0)
+    run = json.loads((rd / "run.json").read_text())
+    rows = [json.loads(x) for x in (rd / "metrics.jsonl").read_text().splitlines()]
+    best = min(range(len(rows)), key=lambda i: rows[i]["val_loss"])
+    assert run["best_epoch"] == best + 1
+    assert run["epochs"] == len(rows) and (run["stopped_early"] == (len(rows) < 12))
+    if run["stopped_early"]:
+        assert len(rows) == best + 2                    # one epoch without improvement, then stop
+    train_users = {t.subject for t in split.train}
+    assert set(run["val_users"]) <= train_users and len(run["val_users"]) == 2
+    assert not set(run["val_users"]) & {t.subject for t in split.test_seen}
+    ck = torch.load(rd / "checkpoint.pt", weights_only=False)
+    model, _ = load_run(rd)
+    assert all(torch.equal(v, ck["model"][k]) for k, v in model.state_dict().items())
+    if run["best_epoch"] != run["epochs"]:
+        assert any(not torch.equal(ck["final_model"][k], ck["model"][k]) for k in ck["model"])
+    # resuming a stopped run trains nothing more
+    train(list(split.train), "exolan", epochs=12, seed=0, out=rd, resume=True, progress=False,
+          batch_size=1024, threads=1, lr=0.05, patience=1, val_users=2, val_every=0)
+    assert len((rd / "metrics.jsonl").read_text().splitlines()) == len(rows)
+
+
+def test_increment_normalisation_weighs_the_motion_within_the_horizon(tiny):
+    from exolan.train import ms_weights
+
+    trials = list(tiny)
+    stats = compute_stats(trials, horizon=4)
+    w_q, w_qd = ms_weights(TrainConfig(w_fd=0.01, w_ms=1.0, ms_norm="increment"), stats, "cpu")
+    assert w_q.shape == (4, 2) and w_qd.shape == (4, 2)
+    t = trials[0]
+    v = t.valid[2:] & t.valid[:-2]
+    assert w_qd[1, 0].item() == pytest.approx(1 / np.concatenate(
+        [(x.qd[2:] - x.qd[:-2])[x.valid[2:] & x.valid[:-2]] for x in trials])[:, 0].var(), rel=1e-5)
+    assert v.any()
+    # the motion grows with the horizon, so the weights fall
+    assert torch.all(w_q[1:] < w_q[:-1]) and torch.all(w_qd[1:] < w_qd[:-1])
+    sq, sqd = ms_weights(TrainConfig(w_fd=0.01, w_ms=1.0), stats, "cpu")
+    assert sq.shape == (2,) and torch.allclose(sq, 1 / torch.tensor(stats["var_q"], dtype=torch.float32))
+    with pytest.raises(ValueError, match="ms_norm"):
+        TrainConfig(ms_norm="other")
+    with pytest.raises(ValueError, match="val_users"):
+        TrainConfig(patience=3)

@@ -3,7 +3,12 @@
 The learning side (torch) lives in this package; the fast engine is the Rust extension
 ``exolan._native``.
 """
+import os as _os
 from importlib.metadata import PackageNotFoundError, version as _dist_version
+
+# OpenMP threads that spin while they wait collapse torch's multi-threaded speed on a shared machine (measured: a
+# training step 3.1x slower at 2 threads beside other work, docs/TRAINING.md); read once, when torch loads.
+_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 try:
     __version__ = _dist_version("exolan")
