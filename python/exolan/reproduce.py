@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import hashlib
 import importlib
 import io
@@ -257,6 +258,13 @@ def _fd_metrics(model, items, dtype, scale: Scale) -> list[dict]:
     return rollout_metrics(forward, [(split, tr, z.double().numpy()) for split, tr, z in items], scale)
 
 
+@functools.lru_cache(maxsize=None)
+def _true_trial(users: int, seed: int, seconds, subject: str, task: str, side: str):
+    from exolan.world.reference import TrueTrial
+
+    return TrueTrial(users, seed, seconds, subject, task, side)   # re-simulated once for every mode
+
+
 def reference_fd_rows(items, scale: Scale, mode: str) -> list[dict]:
     """`_fd_metrics` of the world's true leg under one of exolan.world.reference.MODES of inputs."""
     from exolan.world import reference
@@ -265,7 +273,7 @@ def reference_fd_rows(items, scale: Scale, mode: str) -> list[dict]:
         legs = reference.true_legs(scale.users, scale.world_seed)
         params = [legs[tr.subject] for _, tr, _ in items]
     else:
-        truths = [reference.TrueTrial(scale.users, scale.world_seed, scale.seconds, tr.subject, tr.task, tr.side)
+        truths = [_true_trial(scale.users, scale.world_seed, scale.seconds, tr.subject, tr.task, tr.side)
                   for _, tr, _ in items]
 
     def forward(q, qd, tau, z, fv, cop_x, owner, t):
