@@ -89,6 +89,11 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-lim", action="store_true")
     p.add_argument("--w-fd", type=float, default=None)
     p.add_argument("--w-ms", type=float, default=None)
+    p.add_argument("--ms-norm", choices=["state", "increment"], default=None,
+                   help="multi-step errors divided by the variance of q, q̇ (state, the paper's) or of their h-step "
+                        "change (increment)")
+    p.add_argument("--patience", type=int, default=None, help="early stopping: epochs without a better validation loss")
+    p.add_argument("--val-users", type=int, default=None, help="training users carved out as the validation set")
     p.add_argument("--epochs", type=int, default=None)
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--config", default=None, help="TOML file; command-line flags override it")
@@ -112,7 +117,8 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None)
 
     p = sub.add_parser("reproduce", help="the paper's studies and report")
-    p.add_argument("--scale", choices=["small", "medium", "paper"], default="small")
+    p.add_argument("--scale", choices=["small", "converge", "medium", "paper"], default="small",
+                   help="small: the main job's (minutes); converge: the claims, early-stopped, 3 seeds (~2 h on 2 cores)")
     p.add_argument("--data", default=None)
     p.add_argument("--out", required=True)
     p.add_argument("--workers", type=int, default=None)
