@@ -700,45 +700,58 @@ def _claims_table(claims) -> list[str]:
 
 def _markdown(scale: Scale, S: dict, figs: dict) -> str:
     meta = S["meta"]
-    L: list[str] = []
-    L += ["# ExoLaN reproduction report", "",
-          f"Scale **{scale.name}**: {len(scale.seeds)} seeds ({', '.join(map(str, scale.seeds))}), "
-          f"{scale.epochs} epochs, {len(scale.architectures)} architectures x "
-          f"{'with/without LIM' if len(scale.lims) == 2 else 'LIM'}; data `{meta['data']}`"
-          + (f" (simulated: {scale.users} users, tasks {scale.tasks}, {scale.seconds or 'default'} s per trial)"
-             if meta['data'].endswith('/world') else "") + ".",
-          f"Executor: {meta['executor']}, {meta['workers']} worker(s) x {meta['threads_per_worker']} thread(s), "
-          f"device {meta['device']}. {meta['n_runs']} training runs; wall time: world "
-          f"{meta['seconds']['world']:.0f} s, runs {meta['seconds']['runs']:.0f} s (0 s means every run was "
-          "already complete and was reused)."
-          + (f" **Failed runs, missing from the tables** (a re-run retries them): {', '.join(meta['failed_runs'])}."
-             if meta.get("failed_runs") else ""), "",
-          "**Reading this report.** Every number labelled *ours* was measured in this sweep. Numbers labelled "
-          "*paper* are the published ones (Schulze et al., ExoLaN, 2026) on the **real EPIC-lab exoskeleton "
-          "dataset**; ours come from a simulated world (or the data given by `--data`), so absolute values are "
-          "not comparable - compare directions and ratios. "
-          + ("At this scale the models are trained for a few epochs only: the study exercises the whole "
-             "protocol, but its numbers are far from converged and say little about the paper's claims. "
-             "The claims are tested at the `converge` scale (`exolan reproduce --scale converge`: every run "
-             "early-stopped on validation users carved from the training users, 3 seeds); its published tables "
-             "are in `docs/RESULTS.md` of the exolan source tree."
-             if scale.name in ("small", "tiny", "micro") else "")
-          + (f" Early stopping: patience {scale.patience} epochs on {scale.val_users} training users held out "
-             f"as validation (at most {scale.epochs} epochs); the multi-step loss' normalisation is "
-             f"*{scale.ms_norm}* (see section 2)." if scale.patience else ""), "",
-          "Statistics: mean ± std over seeds (sample std). Each claim is tested paired over held-out users "
-          "(per-user MSE pooled over the user's samples and averaged over seeds; Wilcoxon signed-rank, "
-          "two-sided) and, with ≥ 2 seeds, paired over seeds (t-test on each seed's pooled MSE). A claim "
-          "*holds* when our change has the paper's sign and the user-level p < 0.05. With 7 held-out users "
-          "the smallest attainable Wilcoxon p is 0.016.", ""]
+    L = (_section_header(scale, meta)
+         + _section_intention(S["intention"], S["intention_claims"], figs)
+         + _section_forward_dynamics(scale, S["forward_dynamics"], S.get("grad_norms", {}), S["fd_claims"],
+                                     figs)
+         + _section_task_identification(scale, S["task_identification"], figs)
+         + _section_real(scale, meta.get("real_data"), S.get("real") or {}, S["real_claims"], figs)
+         + _section_runs(S["timing"]) + _section_deviations())
+    return "\n".join(L)
 
-    # 1. intention
-    M = S["intention"]
-    L += ["## 1. Human intention estimation", "",
-          "Torque MSE [N² m²] of the total actuated torque on held-out users (pooled over samples and both "
-          "joints), mean ± std over seeds. Cyclic / non-cyclic uses the world's task groups.", "",
-          "| method | seen tasks | unseen tasks | seen, cyclic | seen, non-cyclic | unseen, cyclic | "
-          "unseen, non-cyclic |", "|---|---|---|---|---|---|---|"]
+
+def _section_header(scale: Scale, meta: dict) -> list[str]:
+    """Title, scale, executor and timing, how to read the report, and the statistics used."""
+    L = ["# ExoLaN reproduction report", "",
+         f"Scale **{scale.name}**: {len(scale.seeds)} seeds ({', '.join(map(str, scale.seeds))}), "
+         f"{scale.epochs} epochs, {len(scale.architectures)} architectures x "
+         f"{'with/without LIM' if len(scale.lims) == 2 else 'LIM'}; data `{meta['data']}`"
+         + (f" (simulated: {scale.users} users, tasks {scale.tasks}, {scale.seconds or 'default'} s per trial)"
+            if meta['data'].endswith('/world') else "") + ".",
+         f"Executor: {meta['executor']}, {meta['workers']} worker(s) x {meta['threads_per_worker']} thread(s), "
+         f"device {meta['device']}. {meta['n_runs']} training runs; wall time: world "
+         f"{meta['seconds']['world']:.0f} s, runs {meta['seconds']['runs']:.0f} s (0 s means every run was "
+         "already complete and was reused)."
+         + (f" **Failed runs, missing from the tables** (a re-run retries them): {', '.join(meta['failed_runs'])}."
+            if meta.get("failed_runs") else ""), "",
+         "**Reading this report.** Every number labelled *ours* was measured in this sweep. Numbers labelled "
+         "*paper* are the published ones (Schulze et al., ExoLaN, 2026) on the **real EPIC-lab exoskeleton "
+         "dataset**; ours come from a simulated world (or the data given by `--data`), so absolute values are "
+         "not comparable - compare directions and ratios. "
+         + ("At this scale the models are trained for a few epochs only: the study exercises the whole "
+            "protocol, but its numbers are far from converged and say little about the paper's claims. "
+            "The claims are tested at the `converge` scale (`exolan reproduce --scale converge`: every run "
+            "early-stopped on validation users carved from the training users, 3 seeds); its published tables "
+            "are in `docs/RESULTS.md` of the exolan source tree."
+            if scale.name in ("small", "tiny", "micro") else "")
+         + (f" Early stopping: patience {scale.patience} epochs on {scale.val_users} training users held out "
+            f"as validation (at most {scale.epochs} epochs); the multi-step loss' normalisation is "
+            f"*{scale.ms_norm}* (see section 2)." if scale.patience else ""), "",
+         "Statistics: mean ± std over seeds (sample std). Each claim is tested paired over held-out users "
+         "(per-user MSE pooled over the user's samples and averaged over seeds; Wilcoxon signed-rank, "
+         "two-sided) and, with ≥ 2 seeds, paired over seeds (t-test on each seed's pooled MSE). A claim "
+         "*holds* when our change has the paper's sign and the user-level p < 0.05. With 7 held-out users "
+         "the smallest attainable Wilcoxon p is 0.016.", ""]
+    return L
+
+
+def _section_intention(M: dict, claims: list[dict], figs: dict) -> list[str]:
+    """1. Human intention estimation: torque MSE per method, the claims, the per-task comparison."""
+    L = ["## 1. Human intention estimation", "",
+         "Torque MSE [N² m²] of the total actuated torque on held-out users (pooled over samples and both "
+         "joints), mean ± std over seeds. Cyclic / non-cyclic uses the world's task groups.", "",
+         "| method | seen tasks | unseen tasks | seen, cyclic | seen, non-cyclic | unseen, cyclic | "
+         "unseen, non-cyclic |", "|---|---|---|---|---|---|---|"]
     for name, m in M.items():
         L.append(f"| {m['label']} | {_pm(m['seen']['mse'])} | {_pm(m['unseen']['mse'])} | "
                  f"{_pm(m['seen']['cyclic'])} | {_pm(m['seen']['noncyclic'])} | {_pm(m['unseen']['cyclic'])} | "
@@ -747,10 +760,22 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
           "*Paper (real data):* seen tasks, cyclic: TCN 464, ExoLaN 468 N² m²; non-cyclic: ExoLaN 411, "
           "TCN 450 N² m². The paper gives the other results as relative changes (below).", "",
           "### Claims", ""]
-    L += _claims_table(S["intention_claims"])
-    L += ["", "### Per task: MLP-TCN + LIM vs ExoLaN + LIM [N² m²]", "",
-          "| task | split | ours MLP-TCN | ours ExoLaN | ours change | paper MLP-TCN | paper ExoLaN | paper change |",
-          "|---|---|---|---|---|---|---|---|"]
+    L += _claims_table(claims)
+    L += _per_task_table(M)
+    if "mse_bars" in figs:
+        L += ["", f"![MSE per method]({figs['mse_bars']})", ""]
+    if "torque_tasks" in figs:
+        L += [f"![torque trajectories]({figs['torque_tasks']})", "",
+              "Torque trajectories of one held-out user (first seed): measured total torque, ExoLaN + LIM and "
+              "MLP-TCN + LIM.", ""]
+    return L
+
+
+def _per_task_table(M: dict) -> list[str]:
+    """Per task: MLP-TCN + LIM vs ExoLaN + LIM, ours and the paper's."""
+    L = ["", "### Per task: MLP-TCN + LIM vs ExoLaN + LIM [N² m²]", "",
+         "| task | split | ours MLP-TCN | ours ExoLaN | ours change | paper MLP-TCN | paper ExoLaN | paper change |",
+         "|---|---|---|---|---|---|---|---|"]
     if "exolan" in M and "mlp-tcn" in M:
         for split in ("seen", "unseen"):
             for task in sorted(set(M["exolan"][split]["per_task"]) & set(M["mlp-tcn"][split]["per_task"]),
@@ -760,34 +785,48 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
                 L.append(f"| {task} | {split} | {_pm(a)} | {_pm(b)} | {_pct(b[0] / a[0] - 1)} | "
                          f"{_f(pt['mlp-tcn']) if pt else '—'} | {_f(pt['exolan']) if pt else '—'} | "
                          f"{_pct(pt['exolan'] / pt['mlp-tcn'] - 1) if pt else '—'} |")
-    if "mse_bars" in figs:
-        L += ["", f"![MSE per method]({figs['mse_bars']})", ""]
-    if "torque_tasks" in figs:
-        L += [f"![torque trajectories]({figs['torque_tasks']})", "",
-              "Torque trajectories of one held-out user (first seed): measured total torque, ExoLaN + LIM and "
-              "MLP-TCN + LIM.", ""]
+    return L
 
-    # 2. forward dynamics
-    fd = S["forward_dynamics"]
-    L += ["## 2. Forward dynamics", "",
-          f"ExoLaN + LIM trained with the inverse loss only, + w_fd = {scale.w_fd:g}, + w_fd and w_ms = "
-          f"{scale.w_ms:g} (H = 4). Held-out users, all tasks (seen and unseen). q and q̇ MSE after 4, 10, "
-          "20 open-loop semi-implicit Euler steps (recorded τ, z and f_v; starts every "
-          f"{scale.rollout_stride} samples). A diverged rollout (non-finite state) counts as infinite error.", "",
-          "The multi-step loss divides each step's q and q̇ error by a variance: *state* is the paper's (the "
-          "training variance of q and q̇); *increment* is the variance of their h-step change in the training "
-          "data, so that an error as large as the motion within the horizon weighs 1 at every step. With the "
-          "paper's, a 4-step error of a model that fits q̈ well is a tiny fraction of the range of motion and the "
-          "term's gradient is a small fraction of the acceleration term's (table below); "
-          f"this scale's w_fd + w_ms run uses *{scale.ms_norm}*"
-          + (", and the paper's is trained beside it." if scale.ms_norm != "state" else "."),
-          "The reference rows roll out the world's own leg the same way: *recorded* is fed exactly what the "
-          "models are fed (τ, the vertical insole force at the recorded centre of pressure; no pelvis motion, no "
-          "horizontal ground force: a learned context can absorb part of those, so it is no bound); *true inputs, "
-          "recorded τ* adds the true pelvis motion and ground force; *true inputs* also has the true torque, leaving "
-          "only sensor noise and the integrator: the floor of any model. The gap between the last two is what the "
-          "recorded torque (filtered moments, the exoskeleton's measured torque) costs every model.", "",
-          "| model | " + " | ".join(FD_HEAD) + " |", "|---|" + "---|" * len(FD_COLS)]
+
+def _section_forward_dynamics(scale: Scale, fd: dict, grad_norms: dict, claims: list[dict],
+                              figs: dict) -> list[str]:
+    """2. Forward dynamics: the three loss variants (and the reference rows) against the paper's."""
+    L = ["## 2. Forward dynamics", "",
+         f"ExoLaN + LIM trained with the inverse loss only, + w_fd = {scale.w_fd:g}, + w_fd and w_ms = "
+         f"{scale.w_ms:g} (H = 4). Held-out users, all tasks (seen and unseen). q and q̇ MSE after 4, 10, "
+         "20 open-loop semi-implicit Euler steps (recorded τ, z and f_v; starts every "
+         f"{scale.rollout_stride} samples). A diverged rollout (non-finite state) counts as infinite error.", "",
+         "The multi-step loss divides each step's q and q̇ error by a variance: *state* is the paper's (the "
+         "training variance of q and q̇); *increment* is the variance of their h-step change in the training "
+         "data, so that an error as large as the motion within the horizon weighs 1 at every step. With the "
+         "paper's, a 4-step error of a model that fits q̈ well is a tiny fraction of the range of motion and the "
+         "term's gradient is a small fraction of the acceleration term's (table below); "
+         f"this scale's w_fd + w_ms run uses *{scale.ms_norm}*"
+         + (", and the paper's is trained beside it." if scale.ms_norm != "state" else "."),
+         "The reference rows roll out the world's own leg the same way: *recorded* is fed exactly what the "
+         "models are fed (τ, the vertical insole force at the recorded centre of pressure; no pelvis motion, no "
+         "horizontal ground force: a learned context can absorb part of those, so it is no bound); *true inputs, "
+         "recorded τ* adds the true pelvis motion and ground force; *true inputs* also has the true torque, leaving "
+         "only sensor noise and the integrator: the floor of any model. The gap between the last two is what the "
+         "recorded torque (filtered moments, the exoskeleton's measured torque) costs every model.", ""]
+    L += _fd_table(fd)
+    if fd:
+        div = "; ".join(f"{fd[k]['label']}: " + ", ".join(f"{h} steps {_f(100 * v[0])}%"
+                        for h, v in fd[k]["diverged_fraction"].items()) for k in fd)
+        L += ["", f"Diverged rollouts (fraction of starts, mean over seeds): {div}.", ""]
+        L += _grad_norm_table(grad_norms)
+        L += ["### Claims", ""]
+        L += _claims_table(claims)
+    for k in ("accelerations", "rollouts", "rollout_error_growth"):
+        if k in figs:
+            L += ["", f"![{k}]({figs[k]})"]
+    L += [""]
+    return L
+
+
+def _fd_table(fd: dict) -> list[str]:
+    """Held-out q̈, q and q̇ errors per forward-dynamics variant: ours, then the paper's."""
+    L = ["| model | " + " | ".join(FD_HEAD) + " |", "|---|" + "---|" * len(FD_COLS)]
     for key in [k for k, _, _, _ in FD_VARIANTS] + [k for k in fd if k.startswith(REFERENCE_KEY)]:
         if key in fd:
             L.append(f"| **ours** {fd[key]['label']} | " + " | ".join(_pm(fd[key]["mean_std"].get(c)) for c in FD_COLS)
@@ -796,28 +835,19 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
         if key not in PAPER["fd"]:
             continue
         L.append(f"| *paper (real data)* {label} | " + " | ".join(_f(PAPER['fd'][key][c]) for c in FD_COLS) + " |")
-    if fd:
-        div = "; ".join(f"{fd[k]['label']}: " + ", ".join(f"{h} steps {_f(100 * v[0])}%"
-                        for h, v in fd[k]["diverged_fraction"].items()) for k in fd)
-        L += ["", f"Diverged rollouts (fraction of starts, mean over seeds): {div}.", ""]
-        L += _grad_norm_table(S.get("grad_norms", {}))
-        L += ["### Claims", ""]
-        L += _claims_table(S["fd_claims"])
-    for k in ("accelerations", "rollouts", "rollout_error_growth"):
-        if k in figs:
-            L += ["", f"![{k}]({figs[k]})"]
-    L += [""]
+    return L
 
-    # 3. task identification
-    ti = S["task_identification"]
+
+def _section_task_identification(scale: Scale, ti: dict, figs: dict) -> list[str]:
+    """3. Task identification from the context z, by sample and by trajectory."""
     P = PAPER["taskid"]
-    L += ["## 3. Task identification from the context z", "",
-          "z of the trained ExoLaN + LIM and MLP-TCN + LIM over the training trajectories; MLP 3 x 64 ReLU, "
-          "softmax cross-entropy with inverse-frequency class weights, Adam (lr 1e-3, wd 1e-4, batch 4096, "
-          f"{scale.taskid_epochs} epochs), one 80/20 split per seed. *By sample* is the paper's protocol; "
-          "neighbouring samples of one trajectory share nearly the same z, so we also split *by trajectory* "
-          "(no temporal leakage).", "",
-          "| model | ours, by sample | ours, by trajectory | paper (real data) |", "|---|---|---|---|"]
+    L = ["## 3. Task identification from the context z", "",
+         "z of the trained ExoLaN + LIM and MLP-TCN + LIM over the training trajectories; MLP 3 x 64 ReLU, "
+         "softmax cross-entropy with inverse-frequency class weights, Adam (lr 1e-3, wd 1e-4, batch 4096, "
+         f"{scale.taskid_epochs} epochs), one 80/20 split per seed. *By sample* is the paper's protocol; "
+         "neighbouring samples of one trajectory share nearly the same z, so we also split *by trajectory* "
+         "(no temporal leakage).", "",
+         "| model | ours, by sample | ours, by trajectory | paper (real data) |", "|---|---|---|---|"]
     for arch in ("exolan", "mlp-tcn"):
         a = ti.get("sample_split", {}).get(arch); b = ti.get("trajectory_split", {}).get(arch)
         L.append(f"| {LABELS[arch]} | {_pm(a['accuracy']) if a else '—'} | {_pm(b['accuracy']) if b else '—'} | "
@@ -840,15 +870,17 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
     if "task_identification" in figs:
         L += ["", f"![task identification]({figs['task_identification']})"]
     L += [""]
+    return L
 
-    # 4. real
-    R = S.get("real") or {}
-    L += ["## 4. Real recordings (`shared/real`)", ""]
+
+def _section_real(scale: Scale, real_data, R: dict, claims: list[dict], figs: dict) -> list[str]:
+    """4. Real recordings: the split, torque MSE per method and split, the claims."""
+    L = ["## 4. Real recordings (`shared/real`)", ""]
     if not R:
         L += ["Not run: the real recordings were not found (set `EXOLAN_REAL_DATA` or place them at "
               "`<repo>/../shared/real`) or this scale skips them.", ""]
     else:
-        L += [f"Data: `{meta.get('real_data')}` - five real people (OpenSim inverse dynamics, force plates "
+        L += [f"Data: `{real_data}` - five real people (OpenSim inverse dynamics, force plates "
               "converted to insole channels), **no exoskeleton** (exo torque is zero), 15 tasks, one person "
               "(REAL01) with 24 of the 28 trials. The paper's 14/7 user split is impossible, so the split is:",
               "",
@@ -869,24 +901,32 @@ def _markdown(scale: Scale, S: dict, figs: dict) -> str:
               "Wilcoxon test runs over held-out *trials* (subject, recording, leg; per-trial MSE averaged over "
               "seeds) - trials of one person are not independent, so read p as descriptive. The 'users "
               "better' column counts trials here.", ""]
-        L += _claims_table(S["real_claims"])
+        L += _claims_table(claims)
         if "real_mse_bars" in figs:
             L += ["", f"![real data]({figs['real_mse_bars']})"]
         L += [""]
+    return L
 
-    # timing and notes
-    tt = [v["train_seconds"] or 0 for v in S["timing"].values()]
-    L += ["## Runs and reproducibility", "",
-          f"{len(tt)} runs; training time per run {_f(min(tt) if tt else float('nan'))}-"
-          f"{_f(max(tt) if tt else float('nan'))} s (sum {sum(tt):.0f} s). Every run lives in "
-          "`runs/<dataset>/<method>_fd<w_fd>_ms<w_ms>_e<epochs>_s<seed>/` with its training directory, "
-          "`result.json` and a `DONE` marker; re-running the same command skips finished runs. The raw "
-          "numbers behind every table are in `results.json`.", "",
-          "## Deviations from the paper's protocol", "",
-          "* Data: a simulated world (issue 3) instead of the EPIC-lab recordings; the real-data section uses "
-          "five public recordings with no exoskeleton.",
-          "* Task identification is also reported with a by-trajectory split (see section 3).",
-          "* Acceleration MSE per task for MLP-TCN (paper: run 2841 vs 1394) is not reproduced: a black-box "
-          "inverse model has no forward dynamics, and the paper does not say how it obtained q̈ from MLP-TCN.",
-          ""]
-    return "\n".join(L)
+
+def _section_runs(timing: dict) -> list[str]:
+    """Runs and reproducibility: training times and where every run's files are."""
+    tt = [v["train_seconds"] or 0 for v in timing.values()]
+    L = ["## Runs and reproducibility", "",
+         f"{len(tt)} runs; training time per run {_f(min(tt) if tt else float('nan'))}-"
+         f"{_f(max(tt) if tt else float('nan'))} s (sum {sum(tt):.0f} s). Every run lives in "
+         "`runs/<dataset>/<method>_fd<w_fd>_ms<w_ms>_e<epochs>_s<seed>/` with its training directory, "
+         "`result.json` and a `DONE` marker; re-running the same command skips finished runs. The raw "
+         "numbers behind every table are in `results.json`.", ""]
+    return L
+
+
+def _section_deviations() -> list[str]:
+    """Deviations from the paper's protocol."""
+    L = ["## Deviations from the paper's protocol", "",
+         "* Data: a simulated world (issue 3) instead of the EPIC-lab recordings; the real-data section uses "
+         "five public recordings with no exoskeleton.",
+         "* Task identification is also reported with a by-trajectory split (see section 3).",
+         "* Acceleration MSE per task for MLP-TCN (paper: run 2841 vs 1394) is not reproduced: a black-box "
+         "inverse model has no forward dynamics, and the paper does not say how it obtained q̈ from MLP-TCN.",
+         ""]
+    return L
