@@ -358,7 +358,7 @@ def _taskid(runs: dict[str, list[dict]]) -> dict:
             d[arch] = {"accuracy": _ms(accs[arch]), "per_seed": accs[arch],
                        "majority": _ms([x["majority_accuracy"] for x in t])}
             names = [r["taskid"]["tasks"][r["taskid"][split]["majority_class"]] for r in rr if "taskid" in r]
-            d[arch]["majority_class"] = max(set(names), key=names.count)
+            d[arch]["majority_class"] = min(set(names), key=lambda c: (-names.count(c), c))  # ties: first by name
             maj = np.array([x["majority_accuracy"] for x in t])
             if len(t) >= 2:
                 d[arch]["p_vs_majority_ttest_seeds"] = float(stats.ttest_rel(accs[arch], maj).pvalue)
