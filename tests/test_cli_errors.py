@@ -98,6 +98,18 @@ def test_an_unexpected_error_is_one_line_and_exolan_debug_shows_the_traceback(tm
     assert err.startswith("Traceback") and err.splitlines()[-1].startswith("exolan export: unexpected TypeError")
 
 
+def test_a_missing_package_is_one_line_saying_how_to_install_it(tmp_path, capsys, monkeypatch):
+    import exolan.reproduce
+
+    def no_ray(args):
+        raise ModuleNotFoundError("No module named 'ray'", name="ray")
+
+    monkeypatch.setattr(exolan.reproduce, "cli_reproduce", no_ray)
+    assert cli.main(["reproduce", "--out", str(tmp_path / "s"), "--ray", "local"]) == 2
+    line = _one_line_error(capsys.readouterr().err, "reproduce", "'ray'")
+    assert "pip install 'exolan[ray]'" in line
+
+
 def test_a_usage_error_is_one_line(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main(["rollout", str(tmp_path)])  # --data missing

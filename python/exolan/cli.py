@@ -60,13 +60,13 @@ _INPUTS = {
     "reproduce": [("data", "--data", _DATASET, True),
                   ("ray", "--ray", "'local' (a fresh Ray instance on this machine) or the address of a running Ray "
                                    "cluster, e.g. HEAD:6379", False)],
-    "diagnose": [("data", "DATA", _DATASET, True), ("model", "--model", "a DeLaN-based " + _RUN[2:], True)],
+    "diagnose": [("data", "DATA", _DATASET, True), ("model", "--model", "a DeLaN-based run folder written by `exolan train`", True)],
 }
 # what --out names, per command: a file or a folder (the rest)
 _OUT_FILE = {"plot", "evaluate", "export", "rollout"}
 
 # exceptions that mean "this input cannot be used" (exit 2); anything else is unexpected (exit 1)
-_INPUT_ERRORS = (OSError, ValueError, EOFError, pickle.UnpicklingError, ImportError)
+_INPUT_ERRORS = (OSError, ValueError, EOFError, pickle.UnpicklingError)
 
 
 class NotImplementedYet(SystemExit):
@@ -108,9 +108,8 @@ def _expected(command: str, args: argparse.Namespace, message: str) -> str:
 def _error_line(command: str, args: argparse.Namespace, exc: BaseException) -> tuple[str, int]:
     """The one line (without the `exolan COMMAND: ` prefix) and the exit status for an exception."""
     if isinstance(exc, ImportError):
-        what = (f"the Python package '{exc.name}' is not installed; install the pinned dependencies "
-                "(bash scripts/env.sh; for --ray: pip install 'exolan[ray]')")
-        return what, 2
+        how = "pip install 'exolan[ray]'" if exc.name == "ray" else "bash scripts/env.sh installs the pinned ones"
+        return f"the Python package '{exc.name}' is not installed ({how})", 2
     if isinstance(exc, OSError) and exc.filename is not None:
         what = f"{exc.filename}: {exc.strerror or exc}"
         if getattr(exc, "filename2", None):
