@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import secrets
 import sys
 from pathlib import Path
 
@@ -277,8 +278,13 @@ def test_ray_path_gives_the_local_numbers(tiny_pool, fake_real, tmp_path, monkey
     import ray
 
     # the instance's workers inherit this environment: the stand-in backend's module on their path; no usage
-    # report over the network; no cluster address from outside; room for slow worker start-up on a busy machine
+    # report over the network; no cluster address from outside; room for slow worker start-up on a busy machine;
+    # a new local instance enables token authentication (Ray 2.60): its token given here, so that Ray does not
+    # write one to ~/.ray/auth_token
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE)] + sys.path))
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    monkeypatch.setenv("RAY_AUTH_TOKEN", secrets.token_hex(32))
+    monkeypatch.delenv("RAY_AUTH_TOKEN_PATH", raising=False)
     monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
     monkeypatch.delenv("RAY_ADDRESS", raising=False)
     monkeypatch.setenv("RAY_worker_register_timeout_seconds", "300")
