@@ -296,7 +296,8 @@ def test_ray_path_gives_the_local_numbers(tiny_pool, fake_real, tmp_path, monkey
     finally:
         if ray.is_initialized():
             ray.shutdown()
-    assert any("22 to run (ray local" in line for line in lines), lines
+    n = len(R.plan(R.SCALES["tiny"], with_real=True))
+    assert any(f"{n} to run (ray local" in line for line in lines), lines
     assert not any("FAILED" in line for line in lines), lines
     assert _metrics(tmp_path) == _metrics(tiny_pool)
 
