@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -17,13 +19,26 @@ def threads_per_worker() -> int:
     return max(1, min(2, (os.cpu_count() or 1) // max(workers, 1)))
 
 
+_OWN_CACHE = "_EXOLAN_TEST_CACHE_OWNER"  # set by the process that made the session's cache folder
+
+
 def pytest_configure(config):
+    # the reader's cache in a folder of this test session, never the user's ~/.cache/exolan; pytest-xdist's
+    # workers and the CLI tests' subprocesses inherit it from the process that made it
+    if not os.environ.get(_OWN_CACHE):
+        os.environ["EXOLAN_CACHE_DIR"] = tempfile.mkdtemp(prefix="exolan-test-cache-")
+        os.environ[_OWN_CACHE] = str(os.getpid())
     # before any test module imports torch's users; subprocesses (the CLI tests) inherit OMP_NUM_THREADS
     n = threads_per_worker()
     os.environ["OMP_NUM_THREADS"] = str(n)
     import torch
 
     torch.set_num_threads(n)
+
+
+def pytest_unconfigure(config):
+    if os.environ.get(_OWN_CACHE) == str(os.getpid()):
+        shutil.rmtree(os.environ["EXOLAN_CACHE_DIR"], ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):

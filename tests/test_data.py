@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import stat
+import sys
 import time
 from pathlib import Path
 
@@ -87,12 +87,18 @@ def test_context_features_gate_the_cop(small_world):
     np.testing.assert_array_equal(x[~swing, 5:], tr.cop[~swing])
 
 
-def test_second_load_comes_from_the_cache_and_changes_invalidate_it(small_world, tmp_path):
+def _tree(root: Path) -> dict:
+    """Every path under root (hidden ones included) with its size and modification time."""
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(root.rglob("*"))}
+
+
+def test_second_load_comes_from_the_cache_and_changes_invalidate_it(small_world, tmp_path, monkeypatch):
     root = _copy(small_world, tmp_path / "w", tasks=("walk", "run"))
+    monkeypatch.setenv("EXOLAN_CACHE_DIR", str(tmp_path / "cache"))
     t0 = time.perf_counter()
     a = load(root)
     t_cold = time.perf_counter() - t0
-    assert list((root / ".exolan_cache").glob("dataset-*.pkl"))
+    assert len(list((tmp_path / "cache").glob("dataset-*.pkl"))) == 1
     t0 = time.perf_counter()
     b = load(root)
     t_warm = time.perf_counter() - t0
@@ -102,31 +108,60 @@ def test_second_load_comes_from_the_cache_and_changes_invalidate_it(small_world,
     _edit_csv(root / "subjects.csv", lambda ls: [ls[0]] + [l.replace(l.split(",")[1], "99.0") if l.startswith("S01") else l for l in ls[1:]])
     c = load(root)
     assert next(t for t in c if t.subject == "S01").mass == 99.0
+    assert len(list((tmp_path / "cache").glob("dataset-*.pkl"))) == 2
 
 
-def test_read_only_root_caches_elsewhere(small_world, tmp_path, monkeypatch):
-    """The real data directory is read-only: the cache goes to ~/.cache/exolan instead."""
+def test_the_data_folder_never_receives_a_file(small_world, tmp_path, monkeypatch):
+    """A read-only (or shared, or version-controlled) data folder is read and left as it was: the cache goes
+    to the user's cache folder (here the default one, EXOLAN_CACHE_DIR unset). Root ignores the read-only bit,
+    so the folder's listing is compared too."""
+    root = _copy(small_world, tmp_path / "ro")
+    monkeypatch.delenv("EXOLAN_CACHE_DIR")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    before = _tree(root)
+    dirs = [root] + [p for p in root.rglob("*") if p.is_dir()]
+    modes = {d: d.stat().st_mode for d in dirs}
+    for d in dirs:
+        d.chmod(stat.S_IRUSR | stat.S_IXUSR | stat.S_IRGRP | stat.S_IXGRP)
+    try:
+        a = load(root)
+        b = load(root)  # from the cache
+        assert len(a) == len(b) == 4
+        np.testing.assert_array_equal(a[0].q, b[0].q)
+        assert _tree(root) == before
+        assert len(list((tmp_path / "cache" / "exolan").glob("dataset-*.pkl"))) == 1
+    finally:
+        for d in reversed(dirs):
+            d.chmod(modes[d])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the Linux cache folder (XDG)")
+def test_the_default_cache_is_the_users_cache_folder(small_world, tmp_path, monkeypatch):
+    """Without EXOLAN_CACHE_DIR: $XDG_CACHE_HOME/exolan, else ~/.cache/exolan (Linux)."""
     import exolan.data as data
 
-    root = _copy(small_world, tmp_path / "ro")
+    root = _copy(small_world, tmp_path / "w")
+    monkeypatch.delenv("EXOLAN_CACHE_DIR")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    monkeypatch.delenv("EXOLAN_CACHE_DIR", raising=False)
-    if os.geteuid() == 0:  # root can write anywhere: make the root look read-only to the reader
-        real_access = os.access
-        monkeypatch.setattr(data.os, "access",
-                            lambda p, m: False if str(p).startswith(str(root)) else real_access(p, m))
-        mode = None
-    else:
-        mode = root.stat().st_mode
-        root.chmod(stat.S_IRUSR | stat.S_IXUSR)
-    try:
-        ds = load(root)
-        assert len(ds) == 4
-        assert list((tmp_path / "home" / ".cache" / "exolan").glob("dataset-*.pkl"))
-        assert not (root / ".exolan_cache").exists()
-    finally:
-        if mode is not None:
-            root.chmod(mode)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert data.cache_dir() == tmp_path / "xdg" / "exolan"
+    load(root)
+    assert list((tmp_path / "xdg" / "exolan").glob("dataset-*.pkl"))
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    assert data.cache_dir() == tmp_path / "home" / ".cache" / "exolan"
+    monkeypatch.setenv("XDG_CACHE_HOME", "relative/dir")  # invalid per the XDG spec: ignored
+    assert data.cache_dir() == tmp_path / "home" / ".cache" / "exolan"
+    assert not [p for p in root.rglob("*") if p.name.startswith(".")]
+
+
+def test_an_unwritable_cache_folder_does_not_stop_loading(small_world, tmp_path, monkeypatch):
+    root = _copy(small_world, tmp_path / "w")
+    before = _tree(root)
+    (tmp_path / "file").write_text("x")
+    monkeypatch.setenv("EXOLAN_CACHE_DIR", str(tmp_path / "file" / "cache"))  # under a file: never creatable
+    assert len(load(root)) == 4
+    assert _tree(root) == before
 
 
 def test_extra_columns_are_ignored(small_world, tmp_path):
@@ -139,8 +174,9 @@ def test_extra_columns_are_ignored(small_world, tmp_path):
 
 @pytest.mark.parametrize("case", ["missing_column", "nonuniform_time", "unknown_mass", "radians_angles",
                                   "radians_both", "empty", "header_only", "text_cell", "moment_time"])
-def test_bad_input_names_file_and_column(small_world, tmp_path, case):
+def test_bad_input_names_file_and_column(small_world, tmp_path, case, monkeypatch):
     root = _copy(small_world, tmp_path / "w")
+    monkeypatch.setenv("EXOLAN_CACHE_DIR", str(tmp_path / "cache"))
     exo = root / "S02" / "walk_1_1" / "Exo.csv"
     mom = root / "S02" / "walk_1_1" / "Joint_Moments_Filt.csv"
     if case == "missing_column":
@@ -188,7 +224,7 @@ def test_bad_input_names_file_and_column(small_world, tmp_path, case):
     for e in expect:
         assert e in msg, (e, msg)
     assert isinstance(ei.value, ValueError)
-    assert not list((root / ".exolan_cache").glob("dataset-*.pkl")) if (root / ".exolan_cache").exists() else True
+    assert not list((tmp_path / "cache").glob("dataset-*.pkl"))  # a refused dataset is not cached
 
 
 def test_nan_gaps_are_masked_not_zero_filled(small_world, tmp_path):

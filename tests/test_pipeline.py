@@ -1,5 +1,6 @@
-"""The main job (`exolan pipeline`): every step runs in order, a failing step is reported (and makes the
-exit status non-zero) without stopping the later ones, and the summary names every output.
+"""The main job (`exolan pipeline`): every step runs in order, a failing or timed-out step is reported (the job's
+status "partial", the step named in the summary's first line, a non-zero exit status) without stopping the later
+ones, and the summary names every output.
 The end-to-end run with the real parts is `test_pipeline_end_to_end` (slow)."""
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ import pytest
 from exolan import pipeline as P
 from exolan import reproduce as R
 
+_REAL_RUN_PY = P._run_py  # before any test replaces it
 
-def _stub(monkeypatch, fail=None):
+
+def _stub(monkeypatch, fail=None, failed_runs=()):
     calls = []
 
     def fake_world(out, scale, backend):
@@ -26,6 +29,7 @@ def _stub(monkeypatch, fail=None):
         (run / "checkpoint.pt").write_bytes(b"x")
         (out / "report.md").write_text("# report\n")
         calls.append("reproduce")
+        return {"meta": {"failed_runs": list(failed_runs)}}
 
     def fake_cli(*args, log, timeout=None):
         calls.append(args[0])
@@ -71,9 +75,38 @@ def test_a_failing_step_is_reported_and_later_steps_still_run(monkeypatch, tmp_p
     assert P.pipeline(tmp_path, log=lambda *a: None) == 1
     assert calls[-1] == "diagnose"
     summary = json.loads((tmp_path / "pipeline.json").read_text())
+    assert summary["status"] == "partial" and not summary["ok"]
     failed = [s for s in summary["steps"] if s["status"] == "failed"]
     assert len(failed) == 1 and "evaluate" in failed[0]["error"]
-    assert "**error**" in (tmp_path / "pipeline.md").read_text()
+    md = (tmp_path / "pipeline.md").read_text()
+    assert md.splitlines()[0] == "# exolan main job: partial (step 'evaluate the pipeline model' failed)"
+    assert "**error**" in md
+    assert (tmp_path / "exolan.safetensors").exists() and (tmp_path / "rollouts.json").exists()
+
+
+def test_no_trained_model_fails_the_job_and_skips_what_needs_it(monkeypatch, tmp_path):
+    calls = _stub(monkeypatch)
+
+    def broken(*a, **k):
+        raise RuntimeError("out of memory")
+
+    monkeypatch.setattr(R, "reproduce", broken)
+    assert P.pipeline(tmp_path, log=lambda *a: None) == 1
+    assert calls == []
+    summary = json.loads((tmp_path / "pipeline.json").read_text())
+    assert summary["status"] == "failed"
+    assert [s["status"] for s in summary["steps"]] == ["ok", "failed"] + ["skipped"] * 4
+    assert (tmp_path / "pipeline.md").read_text().startswith("# exolan main job: failed (step 'train")
+
+
+def test_failed_runs_of_the_sweep_make_the_job_partial(monkeypatch, tmp_path):
+    _stub(monkeypatch, failed_runs=["world/mlp_fd0_ms0_e3_b1024_s1"])
+    assert P.pipeline(tmp_path, log=lambda *a: None) == 1
+    summary = json.loads((tmp_path / "pipeline.json").read_text())
+    study = summary["steps"][1]
+    assert study["status"] == "partial" and study["failed_runs"] == ["world/mlp_fd0_ms0_e3_b1024_s1"]
+    assert summary["status"] == "partial"
+    assert [s["status"] for s in summary["steps"][2:]] == ["ok"] * 4  # the model was trained: the rest ran
 
 
 @pytest.mark.slow
@@ -89,14 +122,27 @@ def test_pipeline_end_to_end(tmp_path):
         assert (tmp_path / f).stat().st_size > 0, f
 
 
-def test_a_timed_out_diagnosis_is_flagged_but_does_not_fail_the_job(monkeypatch, tmp_path):
+def test_a_timed_out_diagnosis_makes_the_job_partial_and_exolan_pipeline_exit_non_zero(monkeypatch, tmp_path,
+                                                                                        small_world):
+    """The diagnosis step runs for real (its own process, on a tiny world) under a bound of 10 ms, which no
+    Python process can meet: it is stopped, reported as timed out, and `exolan pipeline` exits non-zero
+    while every other step's outputs stay."""
+    import shutil
+
+    from exolan import cli
+
     _stub(monkeypatch)
-
-    def slow(*a, **k):
-        raise P.StepTimeout("diagnose (quick settings) did not finish within 1 s")
-
-    monkeypatch.setattr(P, "_run_py", slow)
-    assert P.pipeline(tmp_path, log=lambda *a: None) == 0
-    steps = json.loads((tmp_path / "pipeline.json").read_text())["steps"]
-    assert steps[-1]["status"] == "timed out"
-    assert "timed out" in (tmp_path / "pipeline.md").read_text()
+    monkeypatch.setattr(P, "_run_py", _REAL_RUN_PY)
+    monkeypatch.setattr(R, "ensure_world", lambda out, scale, backend: shutil.copytree(small_world, out / "world"))
+    monkeypatch.setenv("EXOLAN_DIAGNOSE_TIMEOUT", "0.01")
+    out = tmp_path / "job"
+    assert cli.main(["pipeline", "--out", str(out)]) == 1
+    summary = json.loads((out / "pipeline.json").read_text())
+    assert summary["status"] == "partial"
+    assert [s["status"] for s in summary["steps"]] == ["ok"] * 5 + ["timed out"]
+    assert "0.01 s" in summary["steps"][-1]["error"]
+    assert (out / "pipeline.md").read_text().splitlines()[0] == \
+        "# exolan main job: partial (step 'diagnose' timed out)"
+    for f in ("evaluation.json", "exolan.safetensors", "rollouts.json", "reproduce/report.md", "world/subjects.csv"):
+        assert (out / f).exists(), f
+    assert not (out / "diagnosis" / "diagnosis.json").exists()

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import secrets
 import sys
 from pathlib import Path
 
@@ -246,11 +247,16 @@ def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, fake_real, tmp
     assert a == b
 
 
-def test_process_pool_gives_the_serial_numbers(tiny_serial, fake_real, tmp_path):
+@pytest.fixture(scope="module")
+def tiny_pool(tmp_path_factory, fake_real):
+    out = tmp_path_factory.mktemp("tiny_pool")
+    R.reproduce("tiny", out, workers=2, backend=STANDIN, real_dir=fake_real, log=lambda *a: None, write_report=False)
+    return out
+
+
+def test_process_pool_gives_the_serial_numbers(tiny_serial, tiny_pool):
     out, _ = tiny_serial
-    R.reproduce("tiny", tmp_path, workers=2, backend=STANDIN, real_dir=fake_real, log=lambda *a: None,
-                write_report=False)
-    assert _metrics(tmp_path) == _metrics(out)
+    assert _metrics(tiny_pool) == _metrics(out)
 
 
 def test_paired_statistics():
@@ -280,17 +286,35 @@ def test_verdict_needs_a_size_that_matters():
 
 
 @pytest.mark.ray
-def test_ray_path_gives_the_local_numbers(tiny_serial, fake_real, tmp_path):
-    ray = pytest.importorskip("ray", reason="optional dependency ray not installed (pip install exolan[ray])")
-    out, _ = tiny_serial
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
-             runtime_env={"env_vars": {"PYTHONPATH": os.pathsep.join([str(HERE)] + sys.path)}})
+@pytest.mark.heavy  # 16 s alone, 22 s (plus 40 s of fixtures) beside other tests at load 12 on two cores
+def test_ray_path_gives_the_local_numbers(tiny_pool, fake_real, tmp_path, monkeypatch):
+    """`--ray local`: a fresh local Ray instance runs the tiny sweep (22 runs) and is stopped after it; the numbers
+    are those of the local process pool. Ray is a test dependency: where it is missing this fails, not skips."""
+    import ray
+
+    # the instance's workers inherit this environment: the stand-in backend's module on their path; no usage
+    # report over the network; no cluster address from outside; room for slow worker start-up on a busy machine;
+    # a new local instance enables token authentication (Ray 2.60): its token given here, so that Ray does not
+    # write one to ~/.ray/auth_token
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(HERE)] + sys.path))
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    monkeypatch.setenv("RAY_AUTH_TOKEN", secrets.token_hex(32))
+    monkeypatch.delenv("RAY_AUTH_TOKEN_PATH", raising=False)
+    monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setenv("RAY_worker_register_timeout_seconds", "300")
+    lines = []
     try:
-        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=fake_real, ray_address="auto", log=lambda *a: None,
+        R.reproduce("tiny", tmp_path, backend=STANDIN, real_dir=fake_real, ray_address="local", log=lines.append,
                     write_report=False)
+        assert not ray.is_initialized()  # the sweep stopped the instance it started
     finally:
-        ray.shutdown()
-    assert _metrics(tmp_path) == _metrics(out)
+        if ray.is_initialized():
+            ray.shutdown()
+    n = len(R.plan(R.SCALES["tiny"], with_real=True))
+    assert any(f"{n} to run (ray local" in line for line in lines), lines
+    assert not any("FAILED" in line for line in lines), lines
+    assert _metrics(tmp_path) == _metrics(tiny_pool)
 
 
 def test_forward_dynamics_metrics_on_a_model_that_is_exact():

@@ -3,14 +3,21 @@
 Each subcommand's arguments are declared here; its work lives in the module named by
 ``_HANDLERS`` (one concept, one home) and is imported only when the subcommand runs, so that
 ``exolan --version`` and ``exolan doctor`` stay fast.
+
+Errors: every error a command raises ends here, in `main`, as one line on stderr, ``exolan COMMAND: what
+(which file). Expected: what the inputs must be.``, and a non-zero exit status (2: the input or the
+arguments, 1: anything else, 130: interrupted); never a traceback unless ``EXOLAN_DEBUG=1``.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import os
+import pickle
 import platform
+import re
 import sys
+import traceback
 
 from . import __version__
 
@@ -40,8 +47,87 @@ _HANDLERS = {
 }
 
 
+# what each command reads: (argument dest, how the user names it, what it must be, a path that must exist);
+# the existence of these paths is checked before the command runs, and an error names what they must be
+_DATASET = "a dataset folder (layout 1) or recording <name>.csv (layout 2)"
+_RUN = "a run folder written by `exolan train`"
+_INPUTS = {
+    "plot": [("trial_dir", "TRIAL_DIR", "a trial folder <root>/<SUBJECT>/<task>_k_m", True)],
+    "train": [("data", "--data", _DATASET, True), ("config", "--config", "a TOML or JSON file of training settings", True)],
+    "evaluate": [("run", "RUN", _RUN, True), ("data", "--data", _DATASET, True)],
+    "export": [("run", "RUN", _RUN, True)],
+    "rollout": [("model", "MODEL", "a weight file written by `exolan export`", True), ("data", "--data", _DATASET, True)],
+    "reproduce": [("data", "--data", _DATASET, True),
+                  ("ray", "--ray", "'local' (a fresh Ray instance on this machine) or the address of a running Ray "
+                                   "cluster, e.g. HEAD:6379", False)],
+    "diagnose": [("data", "DATA", _DATASET, True), ("model", "--model", "a DeLaN-based run folder written by `exolan train`", True)],
+}
+# what --out names, per command: a file or a folder (the rest)
+_OUT_FILE = {"plot", "evaluate", "export", "rollout"}
+
+# exceptions that mean "this input cannot be used" (exit 2); anything else is unexpected (exit 1)
+_INPUT_ERRORS = (OSError, ValueError, EOFError, pickle.UnpicklingError)
+
+
 class NotImplementedYet(SystemExit):
     pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line: `exolan COMMAND: message (see exolan COMMAND --help)`."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {_one_line(message)} (see `{self.prog} --help`)\n")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _names(message: str, path: str) -> bool:
+    """Whether the message names this path (as given or absolute), not merely contains its letters."""
+    return any(re.search(r"(?<![\w.-])" + re.escape(p) + r"(?![\w-])", message) for p in (path, os.path.abspath(path)))
+
+
+def _expected(command: str, args: argparse.Namespace, message: str) -> str:
+    """`Expected: ...` for the inputs a message names (all of them when it names none) and --out."""
+    given = [(label, str(getattr(args, dest)), what) for dest, label, what, _ in _INPUTS.get(command, [])
+             if getattr(args, dest, None) is not None]
+    out = getattr(args, "out", None)
+    if out is not None:
+        given.append(("--out", str(out), "a file in a folder that can be created and written" if command in _OUT_FILE
+                      else "a folder that can be created and written"))
+    named = [g for g in given if _names(message, g[1])]
+    shown = named or given
+    if not shown:
+        return ""
+    where = "" if named else " (while using " + ", ".join(f"{label} {value}" for label, value, _ in given) + ")"
+    return where + ". Expected: " + "; ".join(f"{label} {what}" for label, _, what in shown)
+
+
+def _error_line(command: str, args: argparse.Namespace, exc: BaseException) -> tuple[str, int]:
+    """The one line (without the `exolan COMMAND: ` prefix) and the exit status for an exception."""
+    if isinstance(exc, ImportError):
+        how = "pip install 'exolan[ray]'" if exc.name == "ray" else "bash scripts/env.sh installs the pinned ones"
+        return f"the Python package '{exc.name}' is not installed ({how})", 2
+    if isinstance(exc, OSError) and exc.filename is not None:
+        what = f"{exc.filename}: {exc.strerror or exc}"
+        if getattr(exc, "filename2", None):
+            what += f" ({exc.filename2})"
+    else:
+        what = _one_line(exc) or type(exc).__name__
+    if isinstance(exc, _INPUT_ERRORS):
+        return _one_line(what) + _expected(command, args, what), 2
+    return (f"unexpected {type(exc).__name__}: {_one_line(what)}{_expected(command, args, what)}. If the inputs are "
+            "as expected this is a bug: EXOLAN_DEBUG=1 shows the traceback"), 1
+
+
+def _missing_input(command: str, args: argparse.Namespace) -> str | None:
+    for dest, label, what, is_path in _INPUTS.get(command, []):
+        value = getattr(args, dest, None)
+        if is_path and value is not None and not os.path.exists(value):
+            return f"{value}: no such file or directory. Expected: {label} {what}"
+    return None
 
 
 def doctor(args: argparse.Namespace) -> int:
@@ -167,7 +253,7 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="exolan", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="exolan", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"exolan {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_parsers(sub)
@@ -180,23 +266,33 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    module_name, func_name = _HANDLERS[args.command].split(":")
+    command = args.command
+    module_name, func_name = _HANDLERS[command].split(":")
     try:
         module = importlib.import_module(module_name)
         handler = getattr(module, func_name)
     except (ImportError, AttributeError) as exc:
-        if isinstance(exc, ImportError) and exc.name not in (module_name, None):
-            raise
-        print(f"exolan {args.command}: not implemented yet", file=sys.stderr)
-        return 3
-    from .data import DataError
-
+        if not (isinstance(exc, ImportError) and exc.name not in (module_name, None)):
+            print(f"exolan {command}: not implemented yet", file=sys.stderr)
+            return 3
+        line, rc = _error_line(command, args, exc)  # a dependency of the command's module is missing
+        print(f"exolan {command}: {line}", file=sys.stderr)
+        return rc
+    missing = _missing_input(command, args)
+    if missing:
+        print(f"exolan {command}: {missing}", file=sys.stderr)
+        return 2
     try:
         rc = handler(args)
-    except DataError as exc:
-        # bad input is the user's to fix: the message names the file, column or row; no traceback
-        print(f"exolan {args.command}: {exc}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        print(f"exolan {command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # noqa: BLE001 - the one place where a command's errors become one line
+        if os.environ.get("EXOLAN_DEBUG", "") not in ("", "0"):
+            traceback.print_exc()
+        line, rc = _error_line(command, args, exc)
+        print(f"exolan {command}: {line}", file=sys.stderr)
+        return rc
     return int(rc or 0)
 
 

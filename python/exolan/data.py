@@ -26,9 +26,10 @@ Conventions:
     of the inertia that biases it.
   * Layout 2 without velocity columns: qd = the same Savitzky-Golay filter, derivative of q.
   * NaN stays NaN; ``valid`` marks samples where q, qd, qdd, tau and f_v are all finite.
-  * Cache: the parsed dataset is pickled under ``<root>/.exolan_cache/`` (or
-    ``$EXOLAN_CACHE_DIR``, or ``~/.cache/exolan`` when the root is read-only), keyed by a hash of
-    the reader version, its settings and the content of every file read.
+  * Cache: the parsed dataset is pickled into the user's cache folder (`cache_dir`: ``$EXOLAN_CACHE_DIR``,
+    else ``$XDG_CACHE_HOME/exolan`` or ``~/.cache/exolan`` on Linux), never into the data folder (which
+    may be read-only, shared or under version control), keyed by a hash of the reader version, its
+    settings and the content of every file read.
 """
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ import json
 import os
 import pickle
 import re
-import tempfile
+import sys
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +49,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.csv as pacsv
 from scipy.signal import savgol_filter
+
+from .runio import atomic_write
 
 PAPER_TRAIN_TASKS = ("walk", "stand", "calisthenics", "push_pull", "jump_in_place", "turn", "cut")
 
@@ -517,18 +520,20 @@ def read_layout2(csv_path, data: bytes | None = None, meta_bytes: bytes | None =
 # --------------------------------------------------------------------------------------------
 # cache and the public loader
 
-def _cache_dir(root: Path) -> Path:
+def cache_dir() -> Path:
+    """The reader's cache folder: $EXOLAN_CACHE_DIR, else the platform's per-user cache folder
+    ($XDG_CACHE_HOME/exolan or ~/.cache/exolan on Linux, ~/Library/Caches/exolan on macOS,
+    %LOCALAPPDATA%/exolan/Cache on Windows). The data folder itself never receives a file."""
     env = os.environ.get("EXOLAN_CACHE_DIR")
     if env:
-        return Path(env)
-    d = root / ".exolan_cache"
-    if os.access(root, os.W_OK) and (not d.exists() or os.access(d, os.W_OK)):
-        try:
-            d.mkdir(exist_ok=True)
-            return d
-        except OSError:
-            pass
-    return Path(os.path.expanduser("~/.cache/exolan"))
+        return Path(env).expanduser()
+    if sys.platform == "win32" and os.environ.get("LOCALAPPDATA"):
+        return Path(os.environ["LOCALAPPDATA"]) / "exolan" / "Cache"
+    if sys.platform == "darwin":
+        return Path.home() / "Library" / "Caches" / "exolan"
+    xdg = os.environ.get("XDG_CACHE_HOME", "")
+    # the XDG spec: a relative path in the variable is invalid and is ignored
+    return (Path(xdg) if os.path.isabs(xdg) else Path.home() / ".cache") / "exolan"
 
 
 def _input_files(path: Path) -> tuple[int, Path, list]:
@@ -573,7 +578,7 @@ def load(path, cache: bool = True) -> Dataset:
         contents[f] = b
         h.update(str(f.relative_to(root)).encode() + b"\0" + hashlib.blake2b(b, digest_size=20).digest())
     key = h.hexdigest()
-    cdir = _cache_dir(root) if cache else None
+    cdir = cache_dir() if cache else None
     cfile = cdir / f"dataset-{key}.pkl" if cdir else None
     if cfile is not None and cfile.exists():
         try:
@@ -592,11 +597,7 @@ def load(path, cache: bool = True) -> Dataset:
         ds = Dataset(trials, str(root), 2, {t.subject: 1.0 for t in trials}, {}, [])
     if cfile is not None:
         try:
-            cdir.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=cdir)
-            with os.fdopen(fd, "wb") as fh:
-                pickle.dump(ds, fh, protocol=5)
-            os.replace(tmp, cfile)
+            atomic_write(cfile, pickle.dumps(ds, protocol=5))
         except OSError:
             pass  # no writable cache: loading still works
     return ds

@@ -24,7 +24,8 @@ job), ``medium`` (6 s trials, 30 epochs, 3 seeds: a few hours on 8-16 cores or a
 overrides), two runs at a time; evaluation always runs on the CPU in the worker.
 
 Ray (``pip install exolan[ray]``): ``--ray ADDRESS`` submits every job as a Ray task (one CPU each, or
-``threads`` CPUs). The workers must see the same paths as the driver (a shared file system for ``--out``,
+``threads`` CPUs); ``--ray local`` starts a fresh Ray instance on this machine for the sweep and stops it
+after. The workers must see the same paths as the driver (a shared file system for ``--out``,
 the data and the real recordings) and have exolan installed; results travel back to the driver, which
 alone writes the completion markers.
 
@@ -575,15 +576,25 @@ def execute(specs: list[RunSpec], ctx: JobContext, workers: int, ray_address: st
 
     if ray_address:
         import ray
-        ray.init(address=ray_address, ignore_reinit_error=True, log_to_driver=False)
-        remote = ray.remote(num_cpus=ctx.threads)(_ray_job)
-        refs = {remote.remote(s.to_dict(), ctx_d): s for s in todo}
-        i = 0
-        pending = list(refs)
-        while pending:
-            ready, pending = ray.wait(pending, num_returns=1)
-            i += 1
-            finish(refs[ready[0]], ray.get(ready[0]), i)
+        # "local": a fresh Ray instance on this machine for this sweep (no dashboard); any other address joins a
+        # running cluster ("auto": the one `ray start` made on this machine, or $RAY_ADDRESS). What this call
+        # started or joined, it leaves at the end; a Ray session the caller opened stays open.
+        started = not ray.is_initialized()
+        if started:
+            ray.init(address=ray_address, log_to_driver=False,
+                     **({"include_dashboard": False} if ray_address == "local" else {}))
+        try:
+            remote = ray.remote(num_cpus=ctx.threads)(_ray_job)
+            refs = {remote.remote(s.to_dict(), ctx_d): s for s in todo}
+            i = 0
+            pending = list(refs)
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1)
+                i += 1
+                finish(refs[ready[0]], ray.get(ready[0]), i)
+        finally:
+            if started:
+                ray.shutdown()
     elif workers <= 1:
         _worker_init(ctx.threads)
         for i, s in enumerate(todo, 1):
