@@ -44,6 +44,7 @@ import io
 import json
 import os
 import shutil
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -728,5 +729,11 @@ def _default_device(scale: Scale) -> str:
 
 def cli_reproduce(args: argparse.Namespace) -> int:
     scale = getattr(args, "scale", "small")
-    reproduce(scale, args.out, data=args.data, workers=args.workers, ray_address=args.ray)
+    summary = reproduce(scale, args.out, data=args.data, workers=args.workers, ray_address=args.ray)
+    failed = (summary.get("meta") or {}).get("failed_runs") or []
+    if failed:   # the report leaves them out and says so; a re-run retries them
+        print(f"exolan reproduce: {len(failed)} run(s) failed and are missing from the report: "
+              f"{', '.join(failed[:5])}{' ...' if len(failed) > 5 else ''} (re-run the same command to retry them)",
+              file=sys.stderr)
+        return 1
     return 0
