@@ -163,6 +163,27 @@ def test_plan_has_16_methods_per_seed_and_shares_the_inverse_only_run():
     assert paper.epochs == 1000 and len(paper.seeds) == 5
 
 
+def test_converge_plan_early_stops_every_world_run_and_trains_both_normalisations():
+    sc = R.SCALES["converge"]
+    specs = R.plan(sc, with_real=True)
+    world = [s for s in specs if s.dataset == "world"]
+    assert len(sc.seeds) >= 3 and sc.users == 21 and sc.tasks == "all"
+    assert all(s.patience > 0 and s.val_users >= 1 for s in world)            # validation from training users
+    assert not any(s.patience for s in specs if s.dataset == "real")          # one training user: fixed epochs
+    for seed in sc.seeds:
+        mine = [s for s in world if s.seed == seed]
+        intent = {(s.arch, s.lim) for s in mine if s.w_fd == 0 and s.w_ms == 0}
+        assert {("exolan", True), ("exolan", False), ("mlp-tcn", True), ("tcn", True), ("delan", True),
+                ("mlp", True), ("delan-lstm", True)} <= intent
+        ms = {s.ms_norm for s in mine if s.w_ms > 0}
+        assert ms == {"increment", "state"}                                   # ours and the paper's
+        assert any(s.w_fd > 0 and s.w_ms == 0 for s in mine)
+    assert len({s.run_id for s in specs}) == len(specs)
+    # the ids of the earlier scales are unchanged (finished runs of an interrupted study are reused)
+    small = R.RunSpec("world", "exolan", True, 0.01, 1.0, 0, 3, 1024)
+    assert small.run_id == "world/exolan_fd0.01_ms1_e3_b1024_s0"
+
+
 def test_real_split_is_disjoint_and_covers_the_three_held_out_kinds():
     trials = []
     for subj, task, name in [("REAL01", "walk", "walk_1_1"), ("REAL01", "walk", "walk_2_1"),
