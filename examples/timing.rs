@@ -76,12 +76,10 @@ fn main() {
         let mut wss: Vec<exolan::Workspace> = (0..bsz).map(|_| m.workspace()).collect();
         let (mut qb, mut qdb) = (vec![0.0; bsz * (th + 1) * 2], vec![0.0; bsz * (th + 1) * 2]);
         for threads in [1, 2] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = exolan::Pool::new(threads).unwrap();
             time(&format!("batched 256x20, {threads} thr (÷5120)"), 1, || {
-                pool.install(|| {
-                    m.rollout_batch(&mut wss, &q0, &q0, Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, &mut qb, &mut qdb)
-                        .unwrap()
-                })
+                m.rollout_batch(&pool, &mut wss, &q0, &q0, Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, &mut qb, &mut qdb)
+                    .unwrap()
             });
         }
     }

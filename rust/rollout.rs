@@ -2,13 +2,10 @@
 //!
 //!   q̈_k = forward_dynamics(q_k, q̇_k, τ_k, z_k, f_v,k),  q̇_{k+1} = q̇_k + dt q̈_k,  q_{k+1} = q_k + dt q̇_{k+1}
 //!
-//! Outputs hold T+1 states, index 0 being the initial one. A batch spreads its elements over rayon's
-//! threads; each element runs the same sequential code in its own workspace, so the result is
-//! bit-identical for every thread count.
+//! Outputs hold T+1 states, index 0 being the initial one. Batches of rollouts: `batch.rs`.
 
-use rayon::prelude::*;
-
-use crate::delan::{check, ExoTorque, Workspace};
+use crate::delan::{ExoTorque, Workspace};
+use crate::dynamics::check;
 use crate::error::{Error, Result};
 use crate::model::Model;
 
@@ -69,7 +66,7 @@ impl Model {
         if !(dt.is_finite() && dt > 0.0) {
             return Err(Error::NonFiniteInput(format!("dt must be finite and > 0, got {dt}")));
         }
-        if inp.tau.len() % n != 0 {
+        if !inp.tau.len().is_multiple_of(n) {
             return Err(Error::InputShape(format!("tau has {} values, not a multiple of n = {n}", inp.tau.len())));
         }
         let t_len = inp.tau.len() / n;
@@ -149,83 +146,6 @@ impl Model {
             ws.qdd = qdd;
             if qn.iter().chain(qdn.iter()).any(|v| !v.is_finite()) {
                 return Err(Error::Diverged { step: k + 1 });
-            }
-        }
-        Ok(())
-    }
-
-    /// B independent rollouts in parallel, one workspace each (`wss.len() == B`). Shapes:
-    /// q0, qd0 B·n; tau B·T·n; z Const B·dz or PerStep B·T·dz; f_v B·T; tau_e B·T·n;
-    /// outputs B·(T+1)·n. The first failing element (lowest index) decides the error.
-    #[allow(clippy::too_many_arguments)]
-    pub fn rollout_batch(
-        &self,
-        wss: &mut [Workspace],
-        q0: &[f64],
-        qd0: &[f64],
-        inp: Inputs,
-        dt: f64,
-        q_out: &mut [f64],
-        qd_out: &mut [f64],
-    ) -> Result<()> {
-        let n = self.n;
-        let bsz = wss.len();
-        if bsz == 0 {
-            return Ok(());
-        }
-        if q0.len() != bsz * n || qd0.len() != bsz * n {
-            return Err(Error::InputShape(format!("q0 and qd0 must hold B·n = {} values", bsz * n)));
-        }
-        if inp.tau.len() % (bsz * n) != 0 {
-            return Err(Error::InputShape(format!("tau has {} values, not B·T·n with B = {bsz}, n = {n}", inp.tau.len())));
-        }
-        let t_len = inp.tau.len() / (bsz * n);
-        let per_out = (t_len + 1) * n;
-        if q_out.len() != bsz * per_out || qd_out.len() != bsz * per_out {
-            return Err(Error::InputShape(format!("outputs must hold B·(T+1)·n = {} values", bsz * per_out)));
-        }
-        let dz = self.dz;
-        match inp.z {
-            ZSeq::Const(z) if z.len() != bsz * dz => {
-                return Err(Error::InputShape(format!("z has {} values, expected B·dz = {}", z.len(), bsz * dz)))
-            }
-            ZSeq::PerStep(z) if z.len() != bsz * t_len * dz => {
-                return Err(Error::InputShape(format!("z has {} values, expected B·T·dz = {}", z.len(), bsz * t_len * dz)))
-            }
-            _ => {}
-        }
-        if inp.f_v.is_some_and(|f| f.len() != bsz * t_len) {
-            return Err(Error::InputShape(format!("f_v must hold B·T = {} values", bsz * t_len)));
-        }
-        if inp.tau_e.is_some_and(|f| f.len() != bsz * t_len * n) {
-            return Err(Error::InputShape(format!("tau_e must hold B·T·n = {} values", bsz * t_len * n)));
-        }
-        wss.par_iter_mut()
-            .zip(q_out.par_chunks_mut(per_out))
-            .zip(qd_out.par_chunks_mut(per_out))
-            .enumerate()
-            .for_each(|(b, ((ws, qo), qdo))| {
-                let sub = Inputs {
-                    tau: &inp.tau[b * t_len * n..(b + 1) * t_len * n],
-                    z: match inp.z {
-                        ZSeq::Keep => ZSeq::Keep,
-                        ZSeq::Const(z) => ZSeq::Const(&z[b * dz..(b + 1) * dz]),
-                        ZSeq::PerStep(z) => ZSeq::PerStep(&z[b * t_len * dz..(b + 1) * t_len * dz]),
-                    },
-                    f_v: inp.f_v.map(|f| &f[b * t_len..(b + 1) * t_len]),
-                    tau_e: inp.tau_e.map(|f| &f[b * t_len * n..(b + 1) * t_len * n]),
-                };
-                ws.status = self.rollout(ws, &q0[b * n..(b + 1) * n], &qd0[b * n..(b + 1) * n], sub, dt, qo, qdo).err();
-            });
-        for (b, ws) in wss.iter_mut().enumerate() {
-            if let Some(e) = ws.status.take() {
-                return Err(match e {
-                    Error::Diverged { step } => Error::Diverged { step },
-                    Error::IllConditioned { det, cond } => Error::IllConditioned { det, cond },
-                    Error::InputShape(m) => Error::InputShape(format!("batch element {b}: {m}")),
-                    Error::NonFiniteInput(m) => Error::NonFiniteInput(format!("batch element {b}: {m}")),
-                    other => other,
-                });
             }
         }
         Ok(())
