@@ -30,11 +30,27 @@ struct Engine {
     model: Model,
     /// Workspace for single-sample and small calls (no allocation per call).
     ws: Mutex<Workspace>,
+    /// Workspaces of batch calls, kept between calls (a concurrent second call makes its own).
+    batch: Mutex<Vec<Workspace>>,
 }
 
 impl Engine {
     fn ws(&self) -> MutexGuard<'_, Workspace> {
         self.ws.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// `f` on `count` workspaces: the kept ones (grown as needed) or, while another call holds
+    /// them, fresh ones. Reuse cannot change a result: a workspace's z cache is exact.
+    fn with_workspaces<T>(&self, count: usize, f: impl FnOnce(&mut [Workspace]) -> T) -> T {
+        match self.batch.try_lock() {
+            Ok(mut kept) => {
+                while kept.len() < count {
+                    kept.push(self.model.workspace());
+                }
+                f(&mut kept[..count])
+            }
+            Err(_) => f(&mut (0..count).map(|_| self.model.workspace()).collect::<Vec<_>>()),
+        }
     }
 
     /// Run a per-sample core call over N samples with the GIL released: small N in the shared
@@ -49,8 +65,7 @@ impl Engine {
             if ns <= CHUNK {
                 f(&pool, std::slice::from_mut(&mut *self.ws()), &mut out)
             } else {
-                let mut wss: Vec<Workspace> = (0..ns.div_ceil(CHUNK)).map(|_| self.model.workspace()).collect();
-                f(&pool, &mut wss, &mut out)
+                self.with_workspaces(ns.div_ceil(CHUNK), |wss| f(&pool, wss, &mut out))
             }
         })
         .map_err(to_py)?;
@@ -123,7 +138,7 @@ impl Engine {
     fn new(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
         let model = py.detach(|| Model::load(&path)).map_err(to_py)?;
         let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws })
+        Ok(Engine { model, ws, batch: Mutex::new(vec![]) })
     }
 
     /// Load from the bytes of a weight file.
@@ -131,7 +146,7 @@ impl Engine {
     fn from_bytes(data: &[u8]) -> PyResult<Self> {
         let model = Model::from_bytes(data).map_err(to_py)?;
         let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws })
+        Ok(Engine { model, ws, batch: Mutex::new(vec![]) })
     }
 
     #[getter]
@@ -389,8 +404,7 @@ impl Engine {
                 }
                 m.rollout(&mut ws, q0, qd0, inp, dt, &mut q, &mut qd)
             } else {
-                let mut wss: Vec<Workspace> = (0..b).map(|_| m.workspace()).collect();
-                m.rollout_batch(&pool, &mut wss, q0, qd0, inp, dt, &mut q, &mut qd)
+                self.with_workspaces(b, |wss| m.rollout_batch(&pool, wss, q0, qd0, inp, dt, &mut q, &mut qd))
             }
         })
         .map_err(to_py)?;
