@@ -4,7 +4,7 @@
 //! thread takes it, so results are bit-identical for every thread count. Nothing here allocates:
 //! the caller passes the workspaces, and the pool hands out indices without a queue.
 
-use crate::delan::{ExoTorque, Workspace};
+use crate::delan::{eval_dispatch, eval_group_simd, ExoTorque, Workspace, GROUP};
 use crate::encoder::EncoderState;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -178,17 +178,34 @@ impl Model {
         q_out: &mut [f64],
         qd_out: &mut [f64],
     ) -> Result<()> {
-        let (n, dz, bsz) = (self.n, self.dz, wss.len());
+        let (n, bsz) = (self.n, wss.len());
         if bsz == 0 {
             return Ok(());
         }
         let t_len = self.check_batch(bsz, q0, qd0, &inp, q_out, qd_out)?;
         let per_out = (t_len + 1) * n;
-        let (wsc, qc, qdc) = (Chunks::new(wss, 1), Chunks::new(q_out, per_out), Chunks::new(qd_out, per_out));
-        pool.run(bsz, &|b| {
-            // SAFETY: the pool hands each index b to exactly one task.
-            let (ws, qo, qdo) = unsafe { (&mut wsc.get(b)[0], qc.get(b), qdc.get(b)) };
-            let sub = Inputs {
+        let g = GROUP;
+        let (wsc, qc, qdc) = (Chunks::new(wss, g), Chunks::new(q_out, g * per_out), Chunks::new(qd_out, g * per_out));
+        pool.run(bsz.div_ceil(g), &|task| {
+            // SAFETY: the pool hands each index to exactly one task.
+            let (ws, qo, qdo) = unsafe { (wsc.get(task), qc.get(task), qdc.get(task)) };
+            self.rollout_group(task * g, ws, q0, qd0, &inp, t_len, dt, qo, qdo);
+        });
+        first_error(wss, in_element)
+    }
+
+    /// Elements b0.. of a batch (one per workspace) stepped together, so that `eval_group` passes each
+    /// hidden layer's weights once for all of them; an element that fails leaves the group (its error
+    /// in its workspace) and the others go on, each computing exactly what its own rollout would.
+    #[allow(clippy::too_many_arguments)]
+    fn rollout_group(&self, b0: usize, wss: &mut [Workspace], q0: &[f64], qd0: &[f64], inp: &Inputs, t_len: usize, dt: f64, qo: &mut [f64], qdo: &mut [f64]) {
+        let (n, dz) = (self.n, self.dz);
+        let per_out = (t_len + 1) * n;
+        let mut active = [false; GROUP];
+        let mut subs = [*inp; GROUP];
+        for (e, ws) in wss.iter_mut().enumerate() {
+            let b = b0 + e;
+            subs[e] = Inputs {
                 tau: &inp.tau[b * t_len * n..(b + 1) * t_len * n],
                 z: match inp.z {
                     ZSeq::Keep => ZSeq::Keep,
@@ -198,9 +215,40 @@ impl Model {
                 f_v: inp.f_v.map(|f| &f[b * t_len..(b + 1) * t_len]),
                 tau_e: inp.tau_e.map(|f| &f[b * t_len * n..(b + 1) * t_len * n]),
             };
-            ws.status = self.rollout(ws, &q0[b * n..(b + 1) * n], &qd0[b * n..(b + 1) * n], sub, dt, qo, qdo).err();
-        });
-        first_error(wss, in_element)
+            let out = e * per_out..(e + 1) * per_out;
+            let r = self.rollout_begin(ws, &q0[b * n..(b + 1) * n], &qd0[b * n..(b + 1) * n], &subs[e], dt, &mut qo[out.clone()], &mut qdo[out]);
+            active[e] = r.is_ok();
+            ws.status = r.err();
+        }
+        for k in 0..t_len {
+            for (e, ws) in wss.iter_mut().enumerate() {
+                if !active[e] {
+                    continue;
+                }
+                let out = e * per_out..(e + 1) * per_out;
+                if let Err(err) = self.step_begin(ws, &subs[e], k, dt, &qo[out.clone()], &qdo[out]) {
+                    (active[e], ws.status) = (false, Some(err));
+                }
+            }
+            if active[..wss.len()].iter().all(|a| *a) {
+                eval_group_simd(self.simd, self, wss);
+            } else {
+                for (_, ws) in wss.iter_mut().enumerate().filter(|(e, _)| active[*e]) {
+                    let qd = std::mem::take(&mut ws.qdp);
+                    eval_dispatch(self, ws, &qd, true);
+                    ws.qdp = qd;
+                }
+            }
+            for (e, ws) in wss.iter_mut().enumerate() {
+                if !active[e] {
+                    continue;
+                }
+                let out = e * per_out..(e + 1) * per_out;
+                if let Err(err) = self.step_end(ws, &subs[e], k, dt, &mut qo[out.clone()], &mut qdo[out]) {
+                    (active[e], ws.status) = (false, Some(err));
+                }
+            }
+        }
     }
 
     /// The batch shapes of `rollout_batch`; returns T.

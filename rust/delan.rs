@@ -9,7 +9,9 @@
 
 use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
-use crate::mlp::{mlp_rest, Dense, Mlp};
+use crate::mlp::{dense, mlp_rest, tanh_tangent, Dense, Mlp};
+#[cfg(target_arch = "x86_64")]
+use crate::mlp::block512;
 use crate::model::Model;
 use crate::simd::simd_dispatch;
 
@@ -221,12 +223,11 @@ fn run_net<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f64]
     mlp_rest::<FMA, WIDE>(net, nt, bufs);
 }
 
-/// H, (c), g, B, V at the physical coordinates `ws.qp`.
+/// φ(q) and dφ/dq at `ws.qp`, layer 0 of L and V (with tangents), and the whole LIM pass (B).
 #[inline(always)]
-fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+fn eval_head<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace) {
     let n = m.n;
     let nt = n + 1;
-    let nn = n * n;
     for (j, &(ca, cb)) in m.phi_cols.iter().enumerate() {
         let qj = ws.qp[j];
         if cb == usize::MAX {
@@ -241,8 +242,8 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
             ws.dphi[2 * j + 1] = c;
         }
     }
-    run_net::<FMA, WIDE>(&m.net_l, &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l);
-    run_net::<FMA, WIDE>(&m.net_v, &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v);
+    first_layer::<FMA>(&m.net_l.layers[0], &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l[0]);
+    first_layer::<FMA>(&m.net_v.layers[0], &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v[0]);
     if let Some(lim) = &m.net_lim {
         run_net::<FMA, WIDE>(lim, &ws.zb_lim, &ws.phi, &ws.dphi, &m.phi_cols, 1, &mut ws.bufs_lim);
         let out = ws.bufs_lim.last().unwrap();
@@ -250,7 +251,84 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
             ws.b[i] = m.meta.lim_scale * out[i];
         }
     }
+}
 
+/// H, (c), g, B, V at the physical coordinates `ws.qp`.
+#[inline(always)]
+fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+    let nt = m.n + 1;
+    eval_head::<FMA, WIDE>(m, ws);
+    mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l);
+    mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v);
+    eval_tail(m, ws, qd, want_c);
+}
+
+/// Elements evaluated together by `eval_group`.
+pub(crate) const GROUP: usize = 4;
+/// Capacity of `eval_group`'s stacked inputs and outputs (GROUP elements x 3 blocks x width 64).
+const GROUP_CAP: usize = GROUP * 3 * 64;
+
+/// `eval` (want_c) of GROUP workspaces at once, each with its q̇ in `ws.qdp`: every hidden layer's
+/// weights pass once for all of them (AVX-512, 2 joints, widths ≤ 64; otherwise one by one). Each
+/// output sums the same terms in the same order as `eval`, so the results are the same bits.
+#[inline(always)]
+fn eval_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace]) {
+    let nt = m.n + 1;
+    for ws in wss.iter_mut() {
+        eval_head::<FMA, WIDE>(m, ws);
+    }
+    for net_is_l in [true, false] {
+        let net = if net_is_l { &m.net_l } else { &m.net_v };
+        for l in 1..net.layers.len() {
+            let (prev, d) = (&net.layers[l - 1], &net.layers[l]);
+            let mut grouped = false;
+            for ws in wss.iter_mut() {
+                let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
+                tanh_tangent::<FMA>(&mut bufs[l - 1], prev.out, nt);
+            }
+            #[cfg(target_arch = "x86_64")]
+            if WIDE && nt == 3 && wss.len() == GROUP && d.out % 16 == 0 && GROUP * nt * d.inp.max(d.out) <= GROUP_CAP {
+                let (mut x, mut y) = ([0.0f64; GROUP_CAP], [0.0f64; GROUP_CAP]);
+                let (wi, wo) = (nt * d.inp, nt * d.out);
+                for (e, ws) in wss.iter().enumerate() {
+                    let bufs = if net_is_l { &ws.bufs_l } else { &ws.bufs_v };
+                    x[e * wi..(e + 1) * wi].copy_from_slice(&bufs[l - 1][..wi]);
+                }
+                let mut i0 = 0;
+                while i0 < d.out {
+                    // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+                    unsafe { block512::<{ GROUP * 3 }, 2, 3>(d, &x, &mut y, i0) };
+                    i0 += 16;
+                }
+                for (e, ws) in wss.iter_mut().enumerate() {
+                    let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
+                    bufs[l][..wo].copy_from_slice(&y[e * wo..(e + 1) * wo]);
+                }
+                grouped = true;
+            }
+            if !grouped {
+                for ws in wss.iter_mut() {
+                    let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
+                    let (a, b) = bufs.split_at_mut(l);
+                    dense::<FMA, WIDE>(d, nt, &a[l - 1], &mut b[0]);
+                }
+            }
+        }
+    }
+    for ws in wss.iter_mut() {
+        let qd = std::mem::take(&mut ws.qdp);
+        eval_tail(m, ws, &qd, true);
+        ws.qdp = qd;
+    }
+}
+
+simd_dispatch!(pub(crate) fn eval_group_simd(m: &Model, wss: &mut [Workspace]) = eval_group;);
+
+/// From the networks' outputs: L, ∂L/∂q, H = LLᵀ, g, V and (want_c) c.
+#[inline(always)]
+fn eval_tail(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+    let n = m.n;
+    let nn = n * n;
     // L and ∂L/∂q_k (dl[k][i][j]) from the L network's outputs: n diagonal then strictly lower.
     let mo = n * (n + 1) / 2;
     let u = ws.bufs_l.last().unwrap();

@@ -208,8 +208,22 @@ impl Model {
         tau_e: Option<ExoTorque>,
         qdd: &mut [f64],
     ) -> Result<()> {
-        let n = self.n;
         eval_dispatch(self, ws, qd, true);
+        self.forward_after_eval(ws, qd, tau, f_v, tau_e, qdd)
+    }
+
+    /// Forward dynamics once `ws` holds the pass at (q, q̇) (`eval`).
+    #[inline]
+    pub(crate) fn forward_after_eval(
+        &self,
+        ws: &mut Workspace,
+        qd: &[f64],
+        tau: &[f64],
+        f_v: f64,
+        tau_e: Option<ExoTorque>,
+        qdd: &mut [f64],
+    ) -> Result<()> {
+        let n = self.n;
         // Everything but H q̈ on the torque side: c + g − B f_v + extensions; rhs = τ − that.
         for i in 0..n {
             ws.t1[i] = ws.c[i] + ws.g[i] - ws.b[i] * f_v;

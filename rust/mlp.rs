@@ -163,11 +163,11 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
         unsafe {
             while i0 + 32 <= out {
-                block512::<NT, 4>(d, x, y, i0);
+                block512::<NT, 4, NT>(d, x, y, i0);
                 i0 += 32;
             }
             while i0 + 8 <= out {
-                block512::<NT, 1>(d, x, y, i0);
+                block512::<NT, 1, NT>(d, x, y, i0);
                 i0 += 8;
             }
         }
@@ -185,21 +185,24 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
     }
 }
 
-/// `block` for 8·R outputs in R zmm registers per block, written with intrinsics: the compiler
+/// `block` for 8·R outputs in R zmm registers per block (the bias on blocks 0, EVERY, 2·EVERY, …: several
+/// samples' value-and-tangent blocks side by side), written with intrinsics: the compiler
 /// does not vectorise the generic `block` at these widths (it spilled 96 accumulators to the stack).
 /// The same fused operations in the same order as `block::<NT, true, _>`, so the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-unsafe fn block512<const NT: usize, const R: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
     use std::arch::x86_64::*;
     let (inp, out) = (d.inp, d.out);
     assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + 8 * R <= out);
     assert!(d.wt.len() >= inp * out && d.b.len() >= out);
     let mut acc = [[_mm512_setzero_pd(); R]; NT];
-    for r in 0..R {
-        // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
-        acc[0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
+    for k in (0..NT).step_by(EVERY) {
+        for r in 0..R {
+            // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
+            acc[k][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
+        }
     }
     let (wt, xp) = (d.wt.as_ptr(), x.as_ptr());
     for j in 0..inp {

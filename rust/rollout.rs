@@ -5,6 +5,7 @@
 //! Outputs hold T+1 states, index 0 being the initial one. Batches of rollouts: `batch.rs`.
 
 use crate::delan::{ExoTorque, Workspace};
+use crate::delan::eval_dispatch;
 use crate::dynamics::check;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -60,6 +61,29 @@ impl Model {
         q_out: &mut [f64],
         qd_out: &mut [f64],
     ) -> Result<()> {
+        let t_len = self.rollout_begin(ws, q0, qd0, &inp, dt, q_out, qd_out)?;
+        for k in 0..t_len {
+            self.step_begin(ws, &inp, k, dt, q_out, qd_out)?;
+            let qd = std::mem::take(&mut ws.qdp);
+            eval_dispatch(self, ws, &qd, true);
+            ws.qdp = qd;
+            self.step_end(ws, &inp, k, dt, q_out, qd_out)?;
+        }
+        Ok(())
+    }
+
+    /// Check a rollout's inputs, set a constant z, write the initial state; returns T.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn rollout_begin(
+        &self,
+        ws: &mut Workspace,
+        q0: &[f64],
+        qd0: &[f64],
+        inp: &Inputs,
+        dt: f64,
+        q_out: &mut [f64],
+        qd_out: &mut [f64],
+    ) -> Result<usize> {
         let n = self.n;
         check("q0", q0, n)?;
         check("qd0", qd0, n)?;
@@ -112,41 +136,52 @@ impl Model {
         }
         q_out[..n].copy_from_slice(q0);
         qd_out[..n].copy_from_slice(qd0);
-        let delay = self.ext.delay.as_deref();
-        for k in 0..t_len {
-            if let ZSeq::PerStep(z) = inp.z {
-                ws.set_z(self, &z[k * self.dz..(k + 1) * self.dz])?;
-            }
+        Ok(t_len)
+    }
+
+    /// Step k before the network pass: z_k, the delayed exo torque, the state into `ws.qp`/`ws.qdp`.
+    pub(crate) fn step_begin(&self, ws: &mut Workspace, inp: &Inputs, k: usize, dt: f64, q_out: &[f64], qd_out: &[f64]) -> Result<()> {
+        let n = self.n;
+        if let ZSeq::PerStep(z) = inp.z {
+            ws.set_z(self, &z[k * self.dz..(k + 1) * self.dz])?;
+        }
+        if let (Some(te), Some(d)) = (inp.tau_e, self.ext.delay.as_deref()) {
+            delayed_into(te, n, k, dt, d, &mut ws.tau_e_del);
+        }
+        // the state is in physical coordinates (as torch's ExtendedModel.forward_dynamics)
+        ws.qp.copy_from_slice(&q_out[k * n..(k + 1) * n]);
+        ws.qdp.copy_from_slice(&qd_out[k * n..(k + 1) * n]);
+        Ok(())
+    }
+
+    /// Step k after the network pass: q̈ from H, c, g, B and the extensions, then semi-implicit Euler.
+    pub(crate) fn step_end(&self, ws: &mut Workspace, inp: &Inputs, k: usize, dt: f64, q_out: &mut [f64], qd_out: &mut [f64]) -> Result<()> {
+        let n = self.n;
+        let te_now = inp.tau_e.map(|te| &te[k * n..(k + 1) * n]);
+        let del = std::mem::take(&mut ws.tau_e_del);
+        let tau_e = match (te_now, self.ext.delay.is_some()) {
+            (Some(now), true) => Some(ExoTorque { now, applied: Some(&del), applied_d: None, applied_dd: None }),
+            (Some(now), false) => Some(ExoTorque::now(now)),
+            _ => None,
+        };
+        let f_v = inp.f_v.map_or(0.0, |f| f[k]);
+        let (mut qdd, qd) = (std::mem::take(&mut ws.qdd), std::mem::take(&mut ws.qdp));
+        let r = self.forward_after_eval(ws, &qd, &inp.tau[k * n..(k + 1) * n], f_v, tau_e, &mut qdd);
+        ws.tau_e_del = del;
+        ws.qdp = qd;
+        if r.is_ok() {
             let (qp, qn) = q_out[k * n..(k + 2) * n].split_at_mut(n);
             let (qdp, qdn) = qd_out[k * n..(k + 2) * n].split_at_mut(n);
-            let te_now = inp.tau_e.map(|te| &te[k * n..(k + 1) * n]);
-            let mut del = std::mem::take(&mut ws.tau_e_del);
-            let tau_e = match (te_now, delay) {
-                (Some(now), Some(d)) => {
-                    delayed_into(inp.tau_e.unwrap(), n, k, dt, d, &mut del);
-                    Some(ExoTorque { now, applied: Some(&del), applied_d: None, applied_dd: None })
-                }
-                (Some(now), None) => Some(ExoTorque::now(now)),
-                _ => None,
-            };
-            // the state is in physical coordinates (as torch's ExtendedModel.forward_dynamics)
-            ws.qp.copy_from_slice(qp);
-            let f_v = inp.f_v.map_or(0.0, |f| f[k]);
-            let mut qdd = std::mem::take(&mut ws.qdd);
-            let r = self.forward_unchecked(ws, qdp, &inp.tau[k * n..(k + 1) * n], f_v, tau_e, &mut qdd);
-            ws.tau_e_del = del;
-            if let Err(e) = r {
-                ws.qdd = qdd;
-                return Err(e);
-            }
             for i in 0..n {
                 qdn[i] = qdp[i] + dt * qdd[i];
                 qn[i] = qp[i] + dt * qdn[i];
             }
-            ws.qdd = qdd;
-            if qn.iter().chain(qdn.iter()).any(|v| !v.is_finite()) {
-                return Err(Error::Diverged { step: k + 1 });
-            }
+        }
+        ws.qdd = qdd;
+        r?;
+        let next = (k + 1) * n..(k + 2) * n;
+        if q_out[next.clone()].iter().chain(&qd_out[next]).any(|v| !v.is_finite()) {
+            return Err(Error::Diverged { step: k + 1 });
         }
         Ok(())
     }
