@@ -126,6 +126,9 @@ def main(argv=None) -> dict:
           f"torch float64 {b['torch64_steps_per_s'] / 1e6:.3f} M steps/s, torch float32 "
           f"{b['torch32_steps_per_s'] / 1e6:.3f} M steps/s  ->  Rust/torch64 {b['torch64_s'] / b['rust_s']:.1f}x, "
           f"Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x")
+    inv, py1 = single["inverse"]["rust_native"], single["inverse"]["rust_python"]
+    print(f"issue #39 targets: inverse native {inv * 1e6:.2f} µs (≤ 1.5), via Python {py1 * 1e6:.2f} µs (≤ 5), "
+          f"batched Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x (≥ 5)")
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=2) + "\n")
     return res

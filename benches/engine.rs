@@ -84,13 +84,11 @@ fn bench_batched(c: &mut Criterion) {
     let mut g = c.benchmark_group("batched_rollout");
     g.throughput(Throughput::Elements((bsz * t_len) as u64));
     for threads in [1, 2] {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = exolan::Pool::new(threads).unwrap();
         g.bench_function(BenchmarkId::new("B256 x T20 per-step z", format!("{threads} threads")), |b| {
             b.iter(|| {
-                pool.install(|| {
-                    m.rollout_batch(&mut wss, &q0, &q0, Inputs { tau: &tau, z: ZSeq::PerStep(&z), f_v: Some(&f_v), tau_e: None }, 0.005, &mut q, &mut qd)
-                        .unwrap()
-                })
+                m.rollout_batch(&pool, &mut wss, &q0, &q0, Inputs { tau: &tau, z: ZSeq::PerStep(&z), f_v: Some(&f_v), tau_e: None }, 0.005, &mut q, &mut qd)
+                    .unwrap()
             })
         });
     }

@@ -43,7 +43,16 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-fn main() {
+/// The command line, with the model loaded and checked.
+struct Args {
+    model: Model,
+    trial_dir: PathBuf,
+    side: String,
+    cutoff: f64,
+    realtime: bool,
+}
+
+fn parse_args() -> Args {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flag = |name: &str| args.iter().position(|a| a == name).and_then(|i| args.get(i + 1)).cloned();
     let positional: Vec<&String> = {
@@ -90,14 +99,26 @@ fn main() {
         std::process::exit(2);
     }
 
+    Args { model, trial_dir, side, cutoff, realtime }
+}
+
+/// The recorded channels of one leg (degrees and N m as in the file).
+struct Trial {
+    time: Vec<f64>,
+    q: [Vec<f64>; 2],
+    qd: [Vec<f64>; 2],
+    f_v: Vec<f64>,
+    cop: [Vec<f64>; 2],
+    te: [Vec<f64>; 2],
+}
+
+fn read_trial(trial_dir: &std::path::Path, s: &str) -> Trial {
     let exo_path = trial_dir.join("Exo.csv");
     let exo = read_csv(&exo_path).unwrap_or_else(|e| {
         eprintln!("controller: {e}");
         std::process::exit(2)
     });
     let f = "Exo.csv";
-    let s = side.as_str();
-    let deg = std::f64::consts::PI / 180.0;
     let time = col(&exo, "time", f);
     let q_hip = col(&exo, &format!("hip_angle_{s}"), f);
     let q_knee = col(&exo, &format!("knee_angle_{s}"), f);
@@ -108,12 +129,34 @@ fn main() {
     let cop_z = col(&exo, &format!("insole_{s}_cop_z"), f);
     let te_hip = col(&exo, &format!("hip_angle_{s}_torque_measured"), f);
     let te_knee = col(&exo, &format!("knee_angle_{s}_torque_measured"), f);
-    let n_samples = time.len();
-    if n_samples < 2 {
+    if time.len() < 2 {
         eprintln!("controller: {} has fewer than 2 samples", exo_path.display());
         std::process::exit(2);
     }
-    let dt = (time[n_samples - 1] - time[0]) / (n_samples - 1) as f64;
+    let v = <[f64]>::to_vec;
+    Trial {
+        time: v(time),
+        q: [v(q_hip), v(q_knee)],
+        qd: [v(qd_hip), v(qd_knee)],
+        f_v: v(f_v),
+        cop: [v(cop_x), v(cop_z)],
+        te: [v(te_hip), v(te_knee)],
+    }
+}
+
+/// What the loop produced: the human torque estimate per sample, per-step latencies (µs), samples
+/// skipped, wall time.
+struct Run {
+    tau_h: Vec<[f64; 2]>,
+    latency: Vec<f64>,
+    skipped: usize,
+    wall: f64,
+}
+
+/// The controller loop over the recorded samples.
+fn run(model: &Model, tr: &Trial, dt: f64, cutoff: f64, realtime: bool) -> Run {
+    let n_samples = tr.time.len();
+    let deg = std::f64::consts::PI / 180.0;
     // first-order low-pass on the velocity difference: a = dt / (dt + 1/(2π f_c))
     let alpha = dt / (dt + 1.0 / (2.0 * std::f64::consts::PI * cutoff));
 
@@ -140,22 +183,22 @@ fn main() {
             }
         }
         let t0 = Instant::now();
-        let q = [q_hip[t] * deg, q_knee[t] * deg];
-        let qd = [qd_hip[t] * deg, qd_knee[t] * deg];
-        let fv = f_v[t];
+        let q = [tr.q[0][t] * deg, tr.q[1][t] * deg];
+        let qd = [tr.qd[0][t] * deg, tr.qd[1][t] * deg];
+        let fv = tr.f_v[t];
         let loaded = fv > 20.0;
-        x.copy_from_slice(&[q[0], q[1], qd[0], qd[1], fv, if loaded { cop_x[t] } else { 0.0 }, if loaded { cop_z[t] } else { 0.0 }]);
+        x.copy_from_slice(&[q[0], q[1], qd[0], qd[1], fv, if loaded { tr.cop[0][t] } else { 0.0 }, if loaded { tr.cop[1][t] } else { 0.0 }]);
         // the encoder sees every sample (NaN channels become 0 after normalisation)
         if model.dz > 0 {
             model.encode_step(&mut enc, &x, &mut z).unwrap();
-            ws.set_z(&model, &z).unwrap();
+            ws.set_z(model, &z).unwrap();
         }
         for i in 0..2 {
             let raw = if qd_prev[i].is_finite() && qd[i].is_finite() { (qd[i] - qd_prev[i]) / dt } else { 0.0 };
             qdd[i] = if qdd[i].is_finite() { qdd[i] + alpha * (raw - qdd[i]) } else { raw };
             qd_prev[i] = qd[i];
         }
-        let te = [te_hip[t], te_knee[t]];
+        let te = [tr.te[0][t], tr.te[1][t]];
         let usable = q.iter().chain(&qd).chain(&te).all(|v| v.is_finite()) && fv.is_finite();
         if usable {
             let f_in = if model.meta.lim { fv } else { 0.0 };
@@ -169,6 +212,16 @@ fn main() {
     }
     let wall = start.elapsed().as_secs_f64();
 
+    Run { tau_h, latency, skipped, wall }
+}
+
+fn main() {
+    let Args { model, trial_dir, side, cutoff, realtime } = parse_args();
+    let s = side.as_str();
+    let tr = read_trial(&trial_dir, s);
+    let n_samples = tr.time.len();
+    let dt = (tr.time[n_samples - 1] - tr.time[0]) / (n_samples - 1) as f64;
+    let Run { tau_h, latency, skipped, wall } = run(&model, &tr, dt, cutoff, realtime);
     let mut sorted = latency.clone();
     sorted.sort_by(f64::total_cmp);
     println!("model: {} (lim {}, encoder {:?}, simd {:?}); trial {} side {s}", model.meta.method, model.meta.lim, model.meta.encoder, model.simd(), trial_dir.display());
@@ -182,7 +235,11 @@ fn main() {
         dt * 1e6
     );
 
-    // optional: compare with the recorded human moment (N m/kg x body mass)
+    compare_moments(&trial_dir, s, n_samples, &tau_h);
+}
+
+/// Where the recording has them: RMSE of τ_h against the recorded human moment (N m/kg x body mass).
+fn compare_moments(trial_dir: &std::path::Path, s: &str, n_samples: usize, tau_h: &[[f64; 2]]) {
     let moments = trial_dir.join("Joint_Moments_Filt.csv");
     let subjects = trial_dir.parent().and_then(|p| p.parent()).map(|p| p.join("subjects.csv"));
     let subject = trial_dir.parent().and_then(|p| p.file_name()).map(|s| s.to_string_lossy().to_string());

@@ -2,7 +2,9 @@
 //! the engine's own cost on a machine shared with other jobs, where means include preemption), plus
 //! the median for comparison.
 //!
-//!     cargo run --release --no-default-features --example timing [-- --portable]
+//!     cargo run --release --no-default-features --example timing [-- --all-levels]
+//!
+//! `--all-levels` times every code path this CPU runs (portable, AVX2, AVX-512) in the same run.
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -23,12 +25,16 @@ fn time<F: FnMut()>(name: &str, per_batch: usize, mut f: F) {
 }
 
 fn main() {
-    let portable = std::env::args().any(|a| a == "--portable");
-    for enc in ["tcn", "lstm"] {
+    let all = std::env::args().any(|a| a == "--all-levels");
+    let best = Model::from_bytes(&random_weights(&SynthConfig::default())).unwrap().simd();
+    let levels: Vec<exolan::Simd> = if all {
+        [exolan::Simd::Portable, exolan::Simd::Avx2Fma, exolan::Simd::Avx512].into_iter().filter(|l| *l <= best).collect()
+    } else {
+        vec![best]
+    };
+    for (level, enc) in levels.iter().flat_map(|l| ["tcn", "lstm"].map(|e| (*l, e))) {
         let mut m = Model::from_bytes(&random_weights(&SynthConfig { encoder: enc, ..Default::default() })).unwrap();
-        if portable {
-            m.set_simd(Some(exolan::Simd::Portable));
-        }
+        m.set_simd(Some(level));
         println!("-- model: DeLaN 2x64 + LIM 2x16 + {enc} encoder (simd: {:?})", m.simd());
         let mut ws = m.workspace();
         let mut st = m.encoder_state();
@@ -76,12 +82,10 @@ fn main() {
         let mut wss: Vec<exolan::Workspace> = (0..bsz).map(|_| m.workspace()).collect();
         let (mut qb, mut qdb) = (vec![0.0; bsz * (th + 1) * 2], vec![0.0; bsz * (th + 1) * 2]);
         for threads in [1, 2] {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let pool = exolan::Pool::new(threads).unwrap();
             time(&format!("batched 256x20, {threads} thr (÷5120)"), 1, || {
-                pool.install(|| {
-                    m.rollout_batch(&mut wss, &q0, &q0, Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, &mut qb, &mut qdb)
-                        .unwrap()
-                })
+                m.rollout_batch(&pool, &mut wss, &q0, &q0, Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, &mut qb, &mut qdb)
+                    .unwrap()
             });
         }
     }

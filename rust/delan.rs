@@ -4,12 +4,16 @@
 //!   H = L Lᵀ,  c = Ḣ q̇ − ½ ∂(q̇ᵀ H q̇)/∂q,  g = v_scale ∂V/∂q,  B = lim_scale · lim([φ; z]).
 //! With L̇ = Σ_k ∂L/∂q_k q̇_k:  Ḣ q̇ = L̇ (Lᵀ q̇) + L (L̇ᵀ q̇)  and  ½ ∂(q̇ᵀ H q̇)/∂q_k = (∂L/∂q_k ᵀ q̇)·(Lᵀ q̇).
 //!
-//! Everything a call needs lives in a preallocated [`Workspace`]; no call allocates.
+//! Everything a call needs lives in a preallocated [`Workspace`]; no call allocates. The public calls
+//! (inverse/forward dynamics, terms, energy) and the solve: `dynamics.rs`.
 
 use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
-use crate::mlp::{mlp_rest, Dense, Mlp};
+use crate::mlp::{dense, mlp_rest, tanh_tangent, Dense, Mlp};
+#[cfg(target_arch = "x86_64")]
+use crate::mlp::block512;
 use crate::model::Model;
+use crate::simd::simd_dispatch;
 
 /// Largest condition number of H accepted by forward dynamics (beyond it q̈ has no correct digits
 /// worth integrating; the caller gets `Error::IllConditioned` instead of garbage).
@@ -34,7 +38,7 @@ impl<'a> ExoTorque<'a> {
     pub fn now(tau_e: &'a [f64]) -> Self {
         ExoTorque { now: tau_e, applied: None, applied_d: None, applied_dd: None }
     }
-    fn app(&self) -> &'a [f64] {
+    pub(crate) fn app(&self) -> &'a [f64] {
         self.applied.unwrap_or(self.now)
     }
 }
@@ -45,27 +49,27 @@ pub struct Workspace {
     pub(crate) n: usize,
     pub(crate) z: Vec<f64>,
     pub(crate) z_ready: bool,
-    zb_l: Vec<f64>,
-    zb_v: Vec<f64>,
-    zb_lim: Vec<f64>,
-    phi: Vec<f64>,
-    dphi: Vec<f64>,
+    pub(crate) zb_l: Vec<f64>,
+    pub(crate) zb_v: Vec<f64>,
+    pub(crate) zb_lim: Vec<f64>,
+    pub(crate) phi: Vec<f64>,
+    pub(crate) dphi: Vec<f64>,
     pub(crate) qp: Vec<f64>,
-    qdp: Vec<f64>,
-    qddp: Vec<f64>,
-    bufs_l: Vec<Vec<f64>>,
-    bufs_v: Vec<Vec<f64>>,
-    bufs_lim: Vec<Vec<f64>>,
-    l: Vec<f64>,
-    dl: Vec<f64>,
-    ld: Vec<f64>,
-    h: Vec<f64>,
-    c: Vec<f64>,
-    g: Vec<f64>,
-    b: Vec<f64>,
-    v: f64,
-    t1: Vec<f64>,
-    t2: Vec<f64>,
+    pub(crate) qdp: Vec<f64>,
+    pub(crate) qddp: Vec<f64>,
+    pub(crate) bufs_l: Vec<Vec<f64>>,
+    pub(crate) bufs_v: Vec<Vec<f64>>,
+    pub(crate) bufs_lim: Vec<Vec<f64>>,
+    pub(crate) l: Vec<f64>,
+    pub(crate) dl: Vec<f64>,
+    pub(crate) ld: Vec<f64>,
+    pub(crate) h: Vec<f64>,
+    pub(crate) c: Vec<f64>,
+    pub(crate) g: Vec<f64>,
+    pub(crate) b: Vec<f64>,
+    pub(crate) v: f64,
+    pub(crate) t1: Vec<f64>,
+    pub(crate) t2: Vec<f64>,
     pub(crate) rhs: Vec<f64>,
     pub(crate) qdd: Vec<f64>,
     pub(crate) tau_e_del: Vec<f64>,
@@ -115,14 +119,7 @@ impl Workspace {
 
     fn compute_z(&mut self, m: &Model, z: &[f64]) {
         self.z.copy_from_slice(z);
-        #[cfg(target_arch = "x86_64")]
-        if m.simd == crate::model::Simd::Avx2Fma {
-            // SAFETY: the level is only set when the CPU reports AVX2 and FMA (checked at load).
-            unsafe { z_bias_fma(m, self, z) };
-            self.z_ready = true;
-            return;
-        }
-        z_bias_all::<false>(m, self, z);
+        z_bias_dispatch(m.simd, m, self, z);
         self.z_ready = true;
     }
 
@@ -173,19 +170,15 @@ impl Workspace {
 }
 
 #[inline(always)]
-fn z_bias_all<const FMA: bool>(m: &Model, ws: &mut Workspace, z: &[f64]) {
-    m.net_l.z_bias_fast::<FMA>(z, &mut ws.zb_l);
-    m.net_v.z_bias_fast::<FMA>(z, &mut ws.zb_v);
+fn z_bias_all<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, z: &[f64]) {
+    m.net_l.z_bias_fast::<FMA, WIDE>(z, &mut ws.zb_l);
+    m.net_v.z_bias_fast::<FMA, WIDE>(z, &mut ws.zb_v);
     if let Some(lim) = &m.net_lim {
-        lim.z_bias_fast::<FMA>(z, &mut ws.zb_lim);
+        lim.z_bias_fast::<FMA, WIDE>(z, &mut ws.zb_lim);
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn z_bias_fma(m: &Model, ws: &mut Workspace, z: &[f64]) {
-    z_bias_all::<true>(m, ws, z)
-}
+simd_dispatch!(fn z_bias_dispatch(m: &Model, ws: &mut Workspace, z: &[f64]) = z_bias_all;);
 
 #[inline(always)]
 fn first_layer<const FMA: bool>(
@@ -230,12 +223,11 @@ fn run_net<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f64]
     mlp_rest::<FMA, WIDE>(net, nt, bufs);
 }
 
-/// H, (c), g, B, V at the physical coordinates `ws.qp`.
+/// φ(q) and dφ/dq at `ws.qp`, layer 0 of L and V (with tangents), and the whole LIM pass (B).
 #[inline(always)]
-fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+fn eval_head<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace) {
     let n = m.n;
     let nt = n + 1;
-    let nn = n * n;
     for (j, &(ca, cb)) in m.phi_cols.iter().enumerate() {
         let qj = ws.qp[j];
         if cb == usize::MAX {
@@ -250,8 +242,8 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
             ws.dphi[2 * j + 1] = c;
         }
     }
-    run_net::<FMA, WIDE>(&m.net_l, &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l);
-    run_net::<FMA, WIDE>(&m.net_v, &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v);
+    first_layer::<FMA>(&m.net_l.layers[0], &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l[0]);
+    first_layer::<FMA>(&m.net_v.layers[0], &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v[0]);
     if let Some(lim) = &m.net_lim {
         run_net::<FMA, WIDE>(lim, &ws.zb_lim, &ws.phi, &ws.dphi, &m.phi_cols, 1, &mut ws.bufs_lim);
         let out = ws.bufs_lim.last().unwrap();
@@ -259,7 +251,84 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
             ws.b[i] = m.meta.lim_scale * out[i];
         }
     }
+}
 
+/// H, (c), g, B, V at the physical coordinates `ws.qp`.
+#[inline(always)]
+fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+    let nt = m.n + 1;
+    eval_head::<FMA, WIDE>(m, ws);
+    mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l);
+    mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v);
+    eval_tail(m, ws, qd, want_c);
+}
+
+/// Elements evaluated together by `eval_group`.
+pub(crate) const GROUP: usize = 4;
+/// Capacity of `eval_group`'s stacked inputs and outputs (GROUP elements x 3 blocks x width 64).
+const GROUP_CAP: usize = GROUP * 3 * 64;
+
+/// `eval` (want_c) of GROUP workspaces at once, each with its q̇ in `ws.qdp`: every hidden layer's
+/// weights pass once for all of them (AVX-512, 2 joints, widths ≤ 64; otherwise one by one). Each
+/// output sums the same terms in the same order as `eval`, so the results are the same bits.
+#[inline(always)]
+fn eval_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace]) {
+    let nt = m.n + 1;
+    for ws in wss.iter_mut() {
+        eval_head::<FMA, WIDE>(m, ws);
+    }
+    for net_is_l in [true, false] {
+        let net = if net_is_l { &m.net_l } else { &m.net_v };
+        for l in 1..net.layers.len() {
+            let (prev, d) = (&net.layers[l - 1], &net.layers[l]);
+            let mut grouped = false;
+            for ws in wss.iter_mut() {
+                let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
+                tanh_tangent::<FMA>(&mut bufs[l - 1], prev.out, nt);
+            }
+            #[cfg(target_arch = "x86_64")]
+            if WIDE && nt == 3 && wss.len() == GROUP && d.out % 16 == 0 && GROUP * nt * d.inp.max(d.out) <= GROUP_CAP {
+                let (mut x, mut y) = ([0.0f64; GROUP_CAP], [0.0f64; GROUP_CAP]);
+                let (wi, wo) = (nt * d.inp, nt * d.out);
+                for (e, ws) in wss.iter().enumerate() {
+                    let bufs = if net_is_l { &ws.bufs_l } else { &ws.bufs_v };
+                    x[e * wi..(e + 1) * wi].copy_from_slice(&bufs[l - 1][..wi]);
+                }
+                let mut i0 = 0;
+                while i0 < d.out {
+                    // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+                    unsafe { block512::<{ GROUP * 3 }, 2, 3>(d, &x, &mut y, i0) };
+                    i0 += 16;
+                }
+                for (e, ws) in wss.iter_mut().enumerate() {
+                    let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
+                    bufs[l][..wo].copy_from_slice(&y[e * wo..(e + 1) * wo]);
+                }
+                grouped = true;
+            }
+            if !grouped {
+                for ws in wss.iter_mut() {
+                    let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
+                    let (a, b) = bufs.split_at_mut(l);
+                    dense::<FMA, WIDE>(d, nt, &a[l - 1], &mut b[0]);
+                }
+            }
+        }
+    }
+    for ws in wss.iter_mut() {
+        let qd = std::mem::take(&mut ws.qdp);
+        eval_tail(m, ws, &qd, true);
+        ws.qdp = qd;
+    }
+}
+
+simd_dispatch!(pub(crate) fn eval_group_simd(m: &Model, wss: &mut [Workspace]) = eval_group;);
+
+/// From the networks' outputs: L, ∂L/∂q, H = LLᵀ, g, V and (want_c) c.
+#[inline(always)]
+fn eval_tail(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+    let n = m.n;
+    let nn = n * n;
     // L and ∂L/∂q_k (dl[k][i][j]) from the L network's outputs: n diagonal then strictly lower.
     let mo = n * (n + 1) / 2;
     let u = ws.bufs_l.last().unwrap();
@@ -341,240 +410,9 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn eval_fma(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
-    eval::<true, false>(m, ws, qd, want_c)
-}
+simd_dispatch!(fn eval_simd(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) = eval;);
 
 #[inline]
 pub(crate) fn eval_dispatch(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
-    #[cfg(target_arch = "x86_64")]
-    match m.simd {
-        // SAFETY: the level is only set when the CPU reports these features (checked at load).
-        crate::model::Simd::Avx2Fma => return unsafe { eval_fma(m, ws, qd, want_c) },
-        crate::model::Simd::Portable => {}
-    }
-    eval::<false, false>(m, ws, qd, want_c)
-}
-
-pub(crate) fn check(name: &str, x: &[f64], n: usize) -> Result<()> {
-    if x.len() != n {
-        return Err(Error::InputShape(format!("{name} has {} entries, expected {n}", x.len())));
-    }
-    if x.iter().any(|v| !v.is_finite()) {
-        return Err(Error::NonFiniteInput(name.to_string()));
-    }
-    Ok(())
-}
-
-/// H⁻¹ rhs. n = 2: the analytic inverse of the 2×2 matrix; general n: forward and back
-/// substitution with L (H = L Lᵀ is already a Cholesky factorisation).
-pub(crate) fn solve(n: usize, h: &[f64], l: &[f64], rhs: &[f64], out: &mut [f64]) -> Result<()> {
-    if n == 1 {
-        let det = h[0];
-        if !(det > 0.0) || !det.is_finite() {
-            return Err(Error::IllConditioned { det, cond: f64::INFINITY });
-        }
-        out[0] = rhs[0] / det;
-        return Ok(());
-    }
-    if n == 2 {
-        let (a, b, d) = (h[0], h[1], h[3]);
-        let det = a * d - b * b;
-        let half_tr = 0.5 * (a + d);
-        let disc = (0.25 * (a - d) * (a - d) + b * b).sqrt();
-        let lmax = half_tr + disc;
-        let lmin = det / lmax; // product of eigenvalues = det (no cancellation)
-        let cond = lmax / lmin;
-        if !(det > 0.0) || !(lmin > 0.0) || !(cond <= COND_MAX) || !det.is_finite() {
-            return Err(Error::IllConditioned { det, cond: if cond.is_finite() && cond > 0.0 { cond } else { f64::INFINITY } });
-        }
-        let inv = 1.0 / det;
-        out[0] = (d * rhs[0] - b * rhs[1]) * inv;
-        out[1] = (a * rhs[1] - b * rhs[0]) * inv;
-        return Ok(());
-    }
-    let (mut dmin, mut dmax, mut det) = (f64::INFINITY, 0.0f64, 1.0);
-    for i in 0..n {
-        let d = l[i * n + i];
-        dmin = dmin.min(d);
-        dmax = dmax.max(d);
-        det *= d * d;
-    }
-    // (max L_ii / min L_ii)² is a lower bound of cond(H).
-    let cond = (dmax / dmin) * (dmax / dmin);
-    if !(dmin > 0.0) || !(cond <= COND_MAX) || !det.is_finite() {
-        return Err(Error::IllConditioned { det, cond });
-    }
-    for i in 0..n {
-        let mut s = rhs[i];
-        for k in 0..i {
-            s -= l[i * n + k] * out[k];
-        }
-        out[i] = s / l[i * n + i];
-    }
-    for i in (0..n).rev() {
-        let mut s = out[i];
-        for k in i + 1..n {
-            s -= l[k * n + i] * out[k];
-        }
-        out[i] = s / l[i * n + i];
-    }
-    Ok(())
-}
-
-impl Model {
-    /// A workspace for this model (allocates; do it once per thread, outside the hot loop).
-    pub fn workspace(&self) -> Workspace {
-        Workspace::new(self)
-    }
-
-    fn prepare(&self, ws: &mut Workspace, q: &[f64], tau_e: Option<ExoTorque>) -> Result<()> {
-        let n = self.n;
-        if ws.n != n || ws.z.len() != self.dz {
-            return Err(Error::InputShape("workspace was made for a different model".into()));
-        }
-        if !ws.z_ready {
-            return Err(Error::InputShape(format!("context z (dimension {}) not set: call set_z first", self.dz)));
-        }
-        check("q", q, n)?;
-        if let Some(te) = tau_e {
-            check("tau_e", te.now, n)?;
-            for (name, x) in [("tau_e applied", te.applied), ("tau_e applied_d", te.applied_d), ("tau_e applied_dd", te.applied_dd)] {
-                if let Some(x) = x {
-                    check(name, x, n)?;
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// H, c, g (and B, V) at (q, q̇) for the workspace's z; read them with `ws.h()`, `ws.c()`, ...
-    /// (The base model's terms at the given coordinates: no extension shifts.)
-    pub fn terms(&self, ws: &mut Workspace, q: &[f64], qd: &[f64]) -> Result<()> {
-        self.prepare(ws, q, None)?;
-        ws.qp.copy_from_slice(q);
-        check("qd", qd, self.n)?;
-        eval_dispatch(self, ws, qd, true);
-        Ok(())
-    }
-
-    /// Kinetic and potential energy (T, V) at (q, q̇).
-    pub fn energy(&self, ws: &mut Workspace, q: &[f64], qd: &[f64]) -> Result<(f64, f64)> {
-        self.prepare(ws, q, None)?;
-        ws.qp.copy_from_slice(q);
-        check("qd", qd, self.n)?;
-        eval_dispatch(self, ws, qd, false);
-        let n = self.n;
-        let mut t = 0.0;
-        for i in 0..n {
-            for j in 0..n {
-                t += qd[i] * ws.h[i * n + j] * qd[j];
-            }
-        }
-        Ok((0.5 * t, ws.v))
-    }
-
-    /// τ = H q̈ + c + g − B f_v (+ extension terms): the predicted recorded total torque.
-    #[allow(clippy::too_many_arguments)]
-    pub fn inverse_dynamics(
-        &self,
-        ws: &mut Workspace,
-        q: &[f64],
-        qd: &[f64],
-        qdd: &[f64],
-        f_v: f64,
-        tau_e: Option<ExoTorque>,
-        tau: &mut [f64],
-    ) -> Result<()> {
-        let n = self.n;
-        self.prepare(ws, q, tau_e)?;
-        check("qd", qd, n)?;
-        check("qdd", qdd, n)?;
-        if !f_v.is_finite() {
-            return Err(Error::NonFiniteInput("f_v".into()));
-        }
-        if tau.len() != n {
-            return Err(Error::InputShape(format!("tau output has {} entries, expected {n}", tau.len())));
-        }
-        // measured → physical coordinates (encoder offset, strap deflection)
-        let app = tau_e.map(|t| t.app());
-        let mut qdp = std::mem::take(&mut ws.qdp);
-        let mut qddp = std::mem::take(&mut ws.qddp);
-        {
-            let ext = &self.ext;
-            ext.physical(q, true, app, &mut ws.qp);
-            ext.physical(qd, false, tau_e.and_then(|t| t.applied_d), &mut qdp);
-            ext.physical(qdd, false, tau_e.and_then(|t| t.applied_dd), &mut qddp);
-        }
-        eval_dispatch(self, ws, &qdp, true);
-        for i in 0..n {
-            let mut s = 0.0;
-            for j in 0..n {
-                s += ws.h[i * n + j] * qddp[j];
-            }
-            tau[i] = s + ws.c[i] + ws.g[i] - ws.b[i] * f_v;
-        }
-        self.ext.add_dissipation(&qdp, self.meta.coulomb_eps, tau);
-        self.ext.add_recording(tau_e.map(|t| t.now), app, tau);
-        ws.qdp = qdp;
-        ws.qddp = qddp;
-        Ok(())
-    }
-
-    /// q̈ = H⁻¹ (τ + B f_v − c − g − extension terms), where τ is the recorded total torque and
-    /// (q, q̇) are physical coordinates (with extensions: offset and strap deflection removed).
-    #[allow(clippy::too_many_arguments)]
-    pub fn forward_dynamics(
-        &self,
-        ws: &mut Workspace,
-        q: &[f64],
-        qd: &[f64],
-        tau: &[f64],
-        f_v: f64,
-        tau_e: Option<ExoTorque>,
-        qdd: &mut [f64],
-    ) -> Result<()> {
-        let n = self.n;
-        self.prepare(ws, q, tau_e)?;
-        check("qd", qd, n)?;
-        check("tau", tau, n)?;
-        if !f_v.is_finite() {
-            return Err(Error::NonFiniteInput("f_v".into()));
-        }
-        if qdd.len() != n {
-            return Err(Error::InputShape(format!("qdd output has {} entries, expected {n}", qdd.len())));
-        }
-        ws.qp.copy_from_slice(q);
-        self.forward_unchecked(ws, qd, tau, f_v, tau_e, qdd)
-    }
-
-    /// Forward dynamics at `ws.qp` (inputs already checked).
-    #[inline]
-    pub(crate) fn forward_unchecked(
-        &self,
-        ws: &mut Workspace,
-        qd: &[f64],
-        tau: &[f64],
-        f_v: f64,
-        tau_e: Option<ExoTorque>,
-        qdd: &mut [f64],
-    ) -> Result<()> {
-        let n = self.n;
-        eval_dispatch(self, ws, qd, true);
-        // Everything but H q̈ on the torque side: c + g − B f_v + extensions; rhs = τ − that.
-        for i in 0..n {
-            ws.t1[i] = ws.c[i] + ws.g[i] - ws.b[i] * f_v;
-        }
-        if self.ext.any() {
-            let (t1, ext) = (&mut ws.t1, &self.ext);
-            ext.add_dissipation(qd, self.meta.coulomb_eps, t1);
-            ext.add_recording(tau_e.map(|t| t.now), tau_e.map(|t| t.app()), t1);
-        }
-        for i in 0..n {
-            ws.rhs[i] = tau[i] - ws.t1[i];
-        }
-        solve(n, &ws.h, &ws.l, &ws.rhs, qdd)
-    }
+    eval_simd(m.simd, m, ws, qd, want_c)
 }

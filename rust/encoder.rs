@@ -4,10 +4,10 @@
 //! a ring buffer of (k−1)·d + 1 slots per conv; zero-initialised rings are exactly torch's left zero
 //! padding. LSTM: the (h, c) state per layer. Both start from zero state, as a trial does in torch.
 
-use crate::error::{Error, Result};
+use crate::error::Error;
 use crate::math::{sigmoid_slice, tanh_slice};
 use crate::mlp::{dense, Dense};
-use crate::model::Model;
+use crate::simd::simd_dispatch;
 
 #[derive(Debug, Clone)]
 pub struct TcnBlock {
@@ -111,6 +111,37 @@ impl Encoder {
             Encoder::Lstm(l) => l.c_in,
         }
     }
+
+    /// A fresh (zero) state for one stream; allocates.
+    pub(crate) fn state(&self) -> EncoderState {
+        let mut st = EncoderState::empty(self.c_in());
+        match self {
+            Encoder::Tcn(t) => {
+                st.blocks = t
+                    .blocks
+                    .iter()
+                    .map(|b| BlockState {
+                        ring1: vec![0.0; b.slots() * b.cin],
+                        ring2: vec![0.0; b.slots() * b.cout],
+                        slots: b.slots(),
+                        pos: 0,
+                        stack: vec![0.0; b.kernel * b.cin.max(b.cout)],
+                        h1: vec![0.0; b.cout],
+                        r: vec![0.0; b.cout],
+                        y: vec![0.0; b.cout],
+                    })
+                    .collect();
+            }
+            Encoder::Lstm(l) => {
+                st.lstm_h = vec![vec![0.0; l.hidden]; l.layers.len()];
+                st.lstm_c = vec![vec![0.0; l.hidden]; l.layers.len()];
+                st.xin = vec![0.0; l.c_in.max(l.hidden) + l.hidden];
+                st.gates = vec![0.0; 4 * l.hidden];
+                st.tanh_c = vec![0.0; l.hidden];
+            }
+        }
+        st
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -137,9 +168,31 @@ pub struct EncoderState {
     tanh_c: Vec<f64>,
     /// Samples seen since the last reset.
     pub steps: usize,
+    /// Outcome of the last batched task run on this state.
+    pub(crate) status: Option<Error>,
 }
 
 impl EncoderState {
+    /// The state of a model without encoder (and the start of every other).
+    pub(crate) fn empty(c: usize) -> EncoderState {
+        EncoderState {
+            xn: vec![0.0; c],
+            blocks: vec![],
+            lstm_h: vec![],
+            lstm_c: vec![],
+            xin: vec![],
+            gates: vec![],
+            tanh_c: vec![],
+            steps: 0,
+            status: None,
+        }
+    }
+
+    /// The normalised input of the next step (C values).
+    pub(crate) fn input_mut(&mut self) -> &mut [f64] {
+        &mut self.xn
+    }
+
     /// Back to zero state (start of a new trial).
     pub fn reset(&mut self) {
         for b in &mut self.blocks {
@@ -167,9 +220,10 @@ fn gather(ring: &[f64], slots: usize, pos: usize, dil: usize, k: usize, c: usize
     }
 }
 
+/// One step from the normalised input in `st` (see `EncoderState::input_mut`) to z.
 #[inline(always)]
-fn step<const FMA: bool, const WIDE: bool>(m: &Model, st: &mut EncoderState, z: &mut [f64]) {
-    match m.encoder.as_ref().unwrap() {
+fn step<const FMA: bool, const WIDE: bool>(enc: &Encoder, st: &mut EncoderState, z: &mut [f64]) {
+    match enc {
         Encoder::Tcn(tcn) => {
             for (bi, blk) in tcn.blocks.iter().enumerate() {
                 let (before, rest) = st.blocks.split_at_mut(bi);
@@ -240,84 +294,4 @@ fn lstm_top(st: &EncoderState) -> &[f64] {
     st.lstm_h.last().unwrap()
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn step_fma(m: &Model, st: &mut EncoderState, z: &mut [f64]) {
-    step::<true, false>(m, st, z)
-}
-
-impl Model {
-    /// A fresh (zero) encoder state; allocates, so make it once per stream.
-    pub fn encoder_state(&self) -> EncoderState {
-        let mut st = EncoderState {
-            xn: vec![0.0; self.context_dim()],
-            blocks: vec![],
-            lstm_h: vec![],
-            lstm_c: vec![],
-            xin: vec![],
-            gates: vec![],
-            tanh_c: vec![],
-            steps: 0,
-        };
-        match &self.encoder {
-            Some(Encoder::Tcn(t)) => {
-                st.blocks = t
-                    .blocks
-                    .iter()
-                    .map(|b| BlockState {
-                        ring1: vec![0.0; b.slots() * b.cin],
-                        ring2: vec![0.0; b.slots() * b.cout],
-                        slots: b.slots(),
-                        pos: 0,
-                        stack: vec![0.0; b.kernel * b.cin.max(b.cout)],
-                        h1: vec![0.0; b.cout],
-                        r: vec![0.0; b.cout],
-                        y: vec![0.0; b.cout],
-                    })
-                    .collect();
-            }
-            Some(Encoder::Lstm(l)) => {
-                st.lstm_h = vec![vec![0.0; l.hidden]; l.layers.len()];
-                st.lstm_c = vec![vec![0.0; l.hidden]; l.layers.len()];
-                st.xin = vec![0.0; l.c_in.max(l.hidden) + l.hidden];
-                st.gates = vec![0.0; 4 * l.hidden];
-                st.tanh_c = vec![0.0; l.hidden];
-            }
-            None => {}
-        }
-        st
-    }
-
-    /// One raw context sample `x` (C channels, as `context_features` gives them; NaN allowed) in,
-    /// z (z_dim) out. Normalises with the stored statistics; non-finite normalised inputs become 0.
-    pub fn encode_step(&self, st: &mut EncoderState, x: &[f64], z: &mut [f64]) -> Result<()> {
-        let norm = match (&self.encoder, &self.norm) {
-            (Some(_), Some(norm)) => norm,
-            _ => return Err(Error::Unsupported(format!("method {:?} has no context encoder", self.meta.method))),
-        };
-        let c = self.context_dim();
-        if x.len() != c {
-            return Err(Error::InputShape(format!("context sample has {} channels, expected {c}", x.len())));
-        }
-        if z.len() != self.dz {
-            return Err(Error::InputShape(format!("z output has {} entries, expected {}", z.len(), self.dz)));
-        }
-        if st.xn.len() != c {
-            return Err(Error::InputShape("encoder state was made for a different model".into()));
-        }
-        for i in 0..c {
-            let v = (x[i] - norm.mean[i]) / norm.std[i];
-            st.xn[i] = if v.is_finite() { v } else { 0.0 };
-        }
-        #[cfg(target_arch = "x86_64")]
-        match self.simd {
-            // SAFETY: the level is only set when the CPU reports these features (checked at load).
-            crate::model::Simd::Avx2Fma => unsafe { step_fma(self, st, z) },
-            crate::model::Simd::Portable => step::<false, false>(self, st, z),
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        step::<false, false>(self, st, z);
-        st.steps += 1;
-        Ok(())
-    }
-}
+simd_dispatch!(pub(crate) fn step_dispatch(enc: &Encoder, st: &mut EncoderState, z: &mut [f64]) = step;);

@@ -11,46 +11,30 @@
 /// Version of the crate, compared by `exolan doctor` against the Python package's version.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
 
-/// Sum of a slice: the trivial function the build tests call through the binding.
-pub fn sum(xs: &[f64]) -> f64 {
-    xs.iter().sum()
-}
-
-/// Scale a slice in place: used to prove that the binding passes numpy memory without copying.
-pub fn scale_in_place(xs: &mut [f64], k: f64) {
-    for x in xs.iter_mut() {
-        *x *= k;
-    }
-}
-
+pub mod batch;
 pub mod delan;
+pub mod dynamics;
 pub mod encoder;
 pub mod error;
 pub mod ext;
 mod math;
 pub mod mlp;
+pub mod loader;
 pub mod model;
+pub mod pool;
 pub mod rollout;
+pub mod simd;
 pub mod synth;
+pub mod timing;
 
 pub use delan::{ExoTorque, Workspace, COND_MAX};
 pub use encoder::EncoderState;
 pub use error::{Error, Result};
 pub use model::{EncoderKind, JointType, Meta, Model, Simd};
+pub use pool::Pool;
 pub use rollout::{Inputs, ZSeq};
 
 #[cfg(feature = "python")]
 mod python;
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sum_and_scale() {
-        let mut v = vec![1.0, 2.0, 3.5];
-        assert_eq!(sum(&v), 6.5);
-        scale_in_place(&mut v, 2.0);
-        assert_eq!(v, vec![2.0, 4.0, 7.0]);
-    }
-}
+#[cfg(feature = "python")]
+mod python_conv;

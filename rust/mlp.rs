@@ -77,9 +77,9 @@ impl Mlp {
 
     /// `b0 + W0[:, split..] z` with the SIMD kernel (bits may differ from `z_bias` in the last place).
     #[inline(always)]
-    pub(crate) fn z_bias_fast<const FMA: bool>(&self, z: &[f64], zb: &mut [f64]) {
+    pub(crate) fn z_bias_fast<const FMA: bool, const WIDE: bool>(&self, z: &[f64], zb: &mut [f64]) {
         match &self.z_part {
-            Some(d) => dense::<FMA, false>(d, 1, z, zb),
+            Some(d) => dense::<FMA, WIDE>(d, 1, z, zb),
             None => zb.copy_from_slice(&self.layers[0].b),
         }
     }
@@ -153,11 +153,25 @@ fn narrow<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64],
 }
 
 /// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
-/// outputs, then of 4, then the narrow path for the last < 4 outputs.
+/// outputs (`WIDE`: 32, 16 and 8 outputs in 512-bit registers), then of 4, then the narrow path.
 #[inline(always)]
-fn dense_nt<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64]) {
+fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64]) {
     let out = d.out;
     let mut i0 = 0;
+    #[cfg(target_arch = "x86_64")]
+    if WIDE {
+        // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+        unsafe {
+            while i0 + 32 <= out {
+                block512::<NT, 4, NT>(d, x, y, i0);
+                i0 += 32;
+            }
+            while i0 + 8 <= out {
+                block512::<NT, 1, NT>(d, x, y, i0);
+                i0 += 8;
+            }
+        }
+    }
     while i0 + BW <= out {
         block::<NT, FMA, BW>(d, x, y, i0);
         i0 += BW;
@@ -168,6 +182,45 @@ fn dense_nt<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f
     }
     if i0 < out {
         narrow::<NT, FMA>(d, x, y, i0);
+    }
+}
+
+/// `block` for 8·R outputs in R zmm registers per block (the bias on blocks 0, EVERY, 2·EVERY, …: several
+/// samples' value-and-tangent blocks side by side), written with intrinsics: the compiler
+/// does not vectorise the generic `block` at these widths (it spilled 96 accumulators to the stack).
+/// The same fused operations in the same order as `block::<NT, true, _>`, so the same bits.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+    use std::arch::x86_64::*;
+    let (inp, out) = (d.inp, d.out);
+    assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + 8 * R <= out);
+    assert!(d.wt.len() >= inp * out && d.b.len() >= out);
+    let mut acc = [[_mm512_setzero_pd(); R]; NT];
+    for k in (0..NT).step_by(EVERY) {
+        for r in 0..R {
+            // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
+            acc[k][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
+        }
+    }
+    let (wt, xp) = (d.wt.as_ptr(), x.as_ptr());
+    for j in 0..inp {
+        let mut w = [_mm512_setzero_pd(); R];
+        for r in 0..R {
+            w[r] = unsafe { _mm512_loadu_pd(wt.add(j * out + i0 + 8 * r)) };
+        }
+        for k in 0..NT {
+            let xk = _mm512_set1_pd(unsafe { *xp.add(k * inp + j) });
+            for r in 0..R {
+                acc[k][r] = _mm512_fmadd_pd(w[r], xk, acc[k][r]);
+            }
+        }
+    }
+    for k in 0..NT {
+        for r in 0..R {
+            unsafe { _mm512_storeu_pd(y.as_mut_ptr().add(k * out + i0 + 8 * r), acc[k][r]) };
+        }
     }
 }
 
@@ -192,27 +245,33 @@ fn dense_dyn<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
 }
 
 /// Dispatch on the tangent count. Register blocks are sized so the accumulators, the weight loads
-/// and the broadcast fit the 16 registers (AVX2: 3 x 3 ymm accumulators for value + 2 tangents;
-/// portable SSE2: 4 outputs). The block width only changes which outputs are computed together,
-/// never the order of any sum. (`WIDE` is reserved for a wider-register variant; unused.)
+/// and the broadcast fit the register file (AVX2: 3 x 3 ymm accumulators for value + 2 tangents;
+/// AVX-512: 3 x 4 zmm, see `block512`; portable SSE2: 4 outputs). The block width only changes which outputs are
+/// computed together, never the order of any sum, so AVX2 and AVX-512 agree bit for bit.
 #[inline(always)]
 pub(crate) fn dense<const FMA: bool, const WIDE: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
-    if FMA {
-        match nt {
-            1 => dense_nt::<1, FMA, 16>(d, x, y),
-            2 => dense_nt::<2, FMA, 12>(d, x, y),
-            3 => dense_nt::<3, FMA, 12>(d, x, y),
-            4 => dense_nt::<4, FMA, 8>(d, x, y),
+    match (FMA, WIDE) {
+        (true, true) => match nt {
+            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y),
+            2 => dense_nt::<2, FMA, WIDE, 8>(d, x, y),
+            3 => dense_nt::<3, FMA, WIDE, 8>(d, x, y),
+            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y),
             _ => dense_dyn::<FMA>(d, nt, x, y),
-        }
-    } else {
-        match nt {
-            1 => dense_nt::<1, FMA, 8>(d, x, y),
-            2 => dense_nt::<2, FMA, 4>(d, x, y),
-            3 => dense_nt::<3, FMA, 4>(d, x, y),
-            4 => dense_nt::<4, FMA, 4>(d, x, y),
+        },
+        (true, false) => match nt {
+            1 => dense_nt::<1, FMA, WIDE, 16>(d, x, y),
+            2 => dense_nt::<2, FMA, WIDE, 12>(d, x, y),
+            3 => dense_nt::<3, FMA, WIDE, 12>(d, x, y),
+            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y),
             _ => dense_dyn::<FMA>(d, nt, x, y),
-        }
+        },
+        _ => match nt {
+            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y),
+            2 => dense_nt::<2, FMA, WIDE, 4>(d, x, y),
+            3 => dense_nt::<3, FMA, WIDE, 4>(d, x, y),
+            4 => dense_nt::<4, FMA, WIDE, 4>(d, x, y),
+            _ => dense_dyn::<FMA>(d, nt, x, y),
+        },
     }
 }
 
@@ -247,9 +306,24 @@ mod tests {
 
     #[test]
     fn dense_blocks_agree_with_naive() {
-        for level in 0..2 {
+        for level in 0..3 {
             dense_check(level);
         }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    fn wide_avx512(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
+        dense::<true, true>(d, nt, x, y)
+    }
+
+    fn wide(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU has the features.
+            return unsafe { wide_avx512(d, nt, x, y) };
+        }
+        dense::<true, false>(d, nt, x, y)
     }
 
     fn dense_check(fma: u8) {
@@ -262,7 +336,8 @@ mod tests {
             let mut y = vec![0.0; nt * out];
             match fma {
                 0 => dense::<false, false>(&d, nt, &x, &mut y),
-                _ => dense::<true, false>(&d, nt, &x, &mut y),
+                1 => dense::<true, false>(&d, nt, &x, &mut y),
+                _ => wide(&d, nt, &x, &mut y),
             }
             for k in 0..nt {
                 for i in 0..out {

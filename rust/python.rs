@@ -1,221 +1,134 @@
-//! The Python binding: `exolan._native`. Thin by design: argument checking and conversion only;
-//! the work happens in the pure-Rust core with the GIL released (`Python::detach`).
+//! The Python binding: `exolan._native`. Conversion only: shapes are checked, arrays borrowed, and the
+//! core is called; every engine error becomes a Python exception carrying the engine's message.
 //!
-//! The methods take C-contiguous float64 arrays with the leading batch dimension already in place
-//! (`python/exolan/engine.py` adds it for single samples); shapes are checked here and every
-//! engine error becomes a Python exception carrying the engine's message.
+//! The batch methods take C-contiguous float64 arrays with the leading dimension in place
+//! (`python/exolan/engine.py` arranges it) and run with the GIL released (`Python::detach`). The
+//! `*_one` methods are the single-sample fast path: they keep the GIL (a call is ~1.5 µs; releasing and
+//! re-taking the GIL costs more, and can wait a switch interval behind another thread) and raise
+//! `TypeError` for anything that is not one plain sample, so the wrapper falls back to the batch path.
 
-use std::sync::Mutex;
+use std::sync::{Mutex, MutexGuard};
 
-use numpy::{PyArray1, PyReadonlyArray1, PyReadonlyArrayDyn, PyReadwriteArray1, PyUntypedArrayMethods};
-use pyo3::exceptions::{PyArithmeticError, PyOSError, PyValueError};
+use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use rayon::prelude::*;
 
+use crate::python_conv::{bad, expect_shape, one, one_scalar, pool_for, rows, samples, scale_in_place, sum, to_py, view};
 use crate::rollout::delayed_into;
-use crate::{EncoderKind, Error, ExoTorque, Inputs, JointType, Model, Workspace, ZSeq};
-
-/// Sum of a contiguous float64 array (read without copying).
-#[pyfunction]
-fn sum(xs: PyReadonlyArray1<'_, f64>) -> PyResult<f64> {
-    let s = xs
-        .as_slice()
-        .map_err(|_| PyValueError::new_err("sum: array must be contiguous float64"))?;
-    Ok(crate::sum(s))
-}
-
-/// Multiply a contiguous float64 array by `k` in place; returns the address of the data it
-/// worked on so a test can check that it is numpy's own buffer (zero copy).
-#[pyfunction]
-fn scale_in_place(mut xs: PyReadwriteArray1<'_, f64>, k: f64) -> PyResult<usize> {
-    let s = xs
-        .as_slice_mut()
-        .map_err(|_| PyValueError::new_err("scale_in_place: array must be contiguous float64"))?;
-    let addr = s.as_ptr() as usize;
-    crate::scale_in_place(s, k);
-    Ok(addr)
-}
-
-fn to_py(e: Error) -> PyErr {
-    let msg = e.to_string();
-    match e {
-        Error::Io(_) => PyOSError::new_err(msg),
-        Error::IllConditioned { .. } | Error::Diverged { .. } => PyArithmeticError::new_err(msg),
-        _ => PyValueError::new_err(msg),
-    }
-}
-
-fn bad(msg: String) -> PyErr {
-    PyValueError::new_err(msg)
-}
-
-/// Shape and data of a contiguous array.
-fn view<'a>(name: &str, a: &'a PyReadonlyArrayDyn<'_, f64>) -> PyResult<(Vec<usize>, &'a [f64])> {
-    let s = a.as_slice().map_err(|_| bad(format!("{name} must be a C-contiguous float64 array")))?;
-    Ok((a.shape().to_vec(), s))
-}
-
-fn expect_shape(name: &str, shape: &[usize], want: &[usize]) -> PyResult<()> {
-    if shape != want {
-        return Err(bad(format!("bad input shape: {name} has shape {shape:?}, expected {want:?}")));
-    }
-    Ok(())
-}
-
-/// Run `f` on a rayon pool of `threads` threads (cached per count), or on the global pool.
-fn with_threads<T: Send>(threads: Option<usize>, f: impl FnOnce() -> T + Send) -> PyResult<T> {
-    use std::collections::HashMap;
-    use std::sync::{Arc, OnceLock};
-    static POOLS: OnceLock<Mutex<HashMap<usize, Arc<rayon::ThreadPool>>>> = OnceLock::new();
-    match threads {
-        None | Some(0) => Ok(f()),
-        Some(t) => {
-            let pool = {
-                let mut pools = POOLS.get_or_init(|| Mutex::new(HashMap::new())).lock().unwrap_or_else(|p| p.into_inner());
-                match pools.get(&t) {
-                    Some(p) => p.clone(),
-                    None => {
-                        let p = Arc::new(
-                            rayon::ThreadPoolBuilder::new()
-                                .num_threads(t)
-                                .build()
-                                .map_err(|e| PyValueError::new_err(format!("cannot start {t} threads: {e}")))?,
-                        );
-                        pools.insert(t, p.clone());
-                        p
-                    }
-                }
-            };
-            Ok(pool.install(f))
-        }
-    }
-}
+use crate::batch::Samples;
+use crate::{EncoderKind, Inputs, JointType, Model, Workspace, ZSeq};
 
 type ArrayPair<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
 
-/// Samples per rayon task: small batches stay on the calling thread.
+/// Samples up to which a per-sample call runs on the calling thread in the engine's own workspace.
 const CHUNK: usize = 64;
 
 /// A loaded model. Methods take batched arrays (leading dimension N or B).
 #[pyclass(module = "exolan._native", frozen)]
 struct Engine {
     model: Model,
-    /// Workspace for single-sample calls (no allocation per call).
+    /// Workspace for single-sample and small calls (no allocation per call).
     ws: Mutex<Workspace>,
-}
-
-/// The per-sample optional arrays of inverse/forward dynamics, as slices.
-struct Opt<'a> {
-    z: Option<&'a [f64]>,
-    f_v: Option<&'a [f64]>,
-    tau_e: Option<&'a [f64]>,
-    tau_app: Option<&'a [f64]>,
-    tau_app_d: Option<&'a [f64]>,
-    tau_app_dd: Option<&'a [f64]>,
+    /// Workspaces of batch calls, kept between calls (a concurrent second call makes its own).
+    batch: Mutex<Vec<Workspace>>,
 }
 
 impl Engine {
-    fn check_opt<'a>(
-        &self,
-        n_samples: usize,
-        z: &'a Option<PyReadonlyArrayDyn<'_, f64>>,
-        f_v: &'a Option<PyReadonlyArrayDyn<'_, f64>>,
-        tau_e: [&'a Option<PyReadonlyArrayDyn<'_, f64>>; 4],
-    ) -> PyResult<Opt<'a>> {
-        let (n, dz) = (self.model.n, self.model.dz);
-        let z = match z {
-            Some(a) => {
-                let (s, d) = view("z", a)?;
-                expect_shape("z", &s, &[n_samples, dz])?;
-                Some(d)
-            }
-            None if dz > 0 => return Err(bad(format!("this model ({}) needs a context z of dimension {dz}", self.model.meta.method))),
-            None => None,
-        };
-        let f_v = match f_v {
-            Some(a) => {
-                let (s, d) = view("f_v", a)?;
-                expect_shape("f_v", &s, &[n_samples])?;
-                Some(d)
-            }
-            None if self.model.meta.lim => return Err(bad("a model with LIM needs the insole force f_v".into())),
-            None => None,
-        };
-        let names = ["tau_e", "tau_app", "tau_app_d", "tau_app_dd"];
-        let mut te: [Option<&[f64]>; 4] = [None; 4];
-        for (k, a) in tau_e.iter().enumerate() {
-            if let Some(a) = a {
-                let (s, d) = view(names[k], a)?;
-                expect_shape(names[k], &s, &[n_samples, n])?;
-                te[k] = Some(d);
-            }
-        }
-        if te[0].is_none() && te[1..].iter().any(|x| x.is_some()) {
-            return Err(bad("tau_app/tau_app_d/tau_app_dd need tau_e".into()));
-        }
-        Ok(Opt { z, f_v, tau_e: te[0], tau_app: te[1], tau_app_d: te[2], tau_app_dd: te[3] })
+    fn ws(&self) -> MutexGuard<'_, Workspace> {
+        self.ws.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Run `f(ws, i, out_i)` for every sample i, in parallel chunks for large N.
-    fn per_sample<F>(&self, py: Python<'_>, n_samples: usize, width: usize, o: &Opt, f: F) -> PyResult<Vec<f64>>
-    where
-        F: Fn(&Model, &mut Workspace, usize, Option<ExoTorque>, &mut [f64]) -> Result<(), Error> + Sync,
-    {
-        let m = &self.model;
-        let (n, dz) = (m.n, m.dz);
-        let run = |ws: &mut Workspace, i0: usize, out: &mut [f64]| -> Result<(), Error> {
-            for (r, o_i) in out.chunks_mut(width).enumerate() {
-                let i = i0 + r;
-                if let Some(z) = o.z {
-                    ws.set_z(m, &z[i * dz..(i + 1) * dz])?;
+    /// `f` on `count` workspaces: the kept ones (grown as needed) or, while another call holds
+    /// them, fresh ones. Reuse cannot change a result: a workspace's z cache is exact.
+    fn with_workspaces<T>(&self, count: usize, f: impl FnOnce(&mut [Workspace]) -> T) -> T {
+        match self.batch.try_lock() {
+            Ok(mut kept) => {
+                while kept.len() < count {
+                    kept.push(self.model.workspace());
                 }
-                let te = o.tau_e.map(|t| ExoTorque {
-                    now: &t[i * n..(i + 1) * n],
-                    applied: o.tau_app.map(|x| &x[i * n..(i + 1) * n]),
-                    applied_d: o.tau_app_d.map(|x| &x[i * n..(i + 1) * n]),
-                    applied_dd: o.tau_app_dd.map(|x| &x[i * n..(i + 1) * n]),
-                });
-                f(m, ws, i, te, o_i).map_err(|e| match e {
-                    Error::IllConditioned { .. } | Error::Diverged { .. } => e,
-                    Error::NonFiniteInput(s) => Error::NonFiniteInput(format!("{s} (sample {i})")),
-                    other => other,
-                })?;
+                f(&mut kept[..count])
             }
-            Ok(())
-        };
-        let mut out = vec![0.0; n_samples * width];
-        let shared = &self.ws;
+            Err(_) => f(&mut (0..count).map(|_| self.model.workspace()).collect::<Vec<_>>()),
+        }
+    }
+
+    /// Run a per-sample core call over N samples with the GIL released: small N in the shared
+    /// workspace on this thread, large N in chunks of CHUNK samples spread over all cores.
+    fn per_sample<F>(&self, py: Python<'_>, ns: usize, width: usize, f: F) -> PyResult<Vec<f64>>
+    where
+        F: Fn(&crate::Pool, &mut [Workspace], &mut [f64]) -> crate::Result<()> + Send + Sync,
+    {
+        let mut out = vec![0.0; ns * width];
+        let pool = pool_for(if ns <= CHUNK { Some(1) } else { None })?;
         py.detach(|| {
-            if n_samples <= CHUNK {
-                let mut ws = shared.lock().unwrap_or_else(|p| p.into_inner());
-                run(&mut ws, 0, &mut out)
+            if ns <= CHUNK {
+                f(&pool, std::slice::from_mut(&mut *self.ws()), &mut out)
             } else {
-                // Each chunk has its own workspace; every sample is computed by the same
-                // sequential code whatever the thread count, so results are bit-identical.
-                let errs: Vec<Option<Error>> = out
-                    .par_chunks_mut(CHUNK * width)
-                    .enumerate()
-                    .map(|(c, chunk)| {
-                        let mut ws = m.workspace();
-                        run(&mut ws, c * CHUNK, chunk).err()
-                    })
-                    .collect();
-                match errs.into_iter().flatten().next() {
-                    Some(e) => Err(e),
-                    None => Ok(()),
-                }
+                self.with_workspaces(ns.div_ceil(CHUNK), |wss| f(&pool, wss, &mut out))
             }
         })
         .map_err(to_py)?;
         Ok(out)
     }
-}
 
-fn samples(name: &str, shape: &[usize], n: usize) -> PyResult<usize> {
-    match shape {
-        [s, k] if *k == n => Ok(*s),
-        _ => Err(bad(format!("bad input shape: {name} has shape {shape:?}, expected (N, {n})"))),
+    /// The z (N, dz) and f_v (N,) of a per-sample call, with the errors for missing ones.
+    fn z_fv<'a>(
+        &self,
+        ns: usize,
+        z: &'a Option<PyReadonlyArrayDyn<'_, f64>>,
+        f_v: &'a Option<PyReadonlyArrayDyn<'_, f64>>,
+    ) -> PyResult<[Option<&'a [f64]>; 2]> {
+        let m = &self.model;
+        let z = rows("z", z, &[ns, m.dz])?;
+        if z.is_none() && m.dz > 0 {
+            return Err(bad(format!("this model ({}) needs a context z of dimension {}", m.meta.method, m.dz)));
+        }
+        let f_v = rows("f_v", f_v, &[ns])?;
+        if f_v.is_none() && m.meta.lim {
+            return Err(bad("a model with LIM needs the insole force f_v".into()));
+        }
+        Ok([z, f_v])
+    }
+
+    /// One sample through `f` in the shared workspace, GIL held; output shaped like `q`.
+    fn single<'py>(
+        &self,
+        py: Python<'py>,
+        args: [&Bound<'py, PyAny>; 3],
+        z: Option<&Bound<'py, PyAny>>,
+        f_v: Option<&Bound<'py, PyAny>>,
+        f: impl Fn(&Model, &mut Workspace, [&[f64]; 3], f64, &mut [f64]) -> crate::Result<()>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        let m = &self.model;
+        let n = m.n;
+        let (a, b, c) = (one(args[0], n)?, one(args[1], n)?, one(args[2], n)?);
+        let shape = a.shape().to_vec();
+        if b.shape() != shape.as_slice() || c.shape() != shape.as_slice() {
+            return Err(PyTypeError::new_err("shapes differ"));
+        }
+        let zr = match z {
+            Some(z) if !z.is_none() => Some(one(z, m.dz)?),
+            _ if m.dz > 0 => return Err(PyTypeError::new_err("z missing")),
+            _ => None,
+        };
+        let fv = match f_v {
+            Some(f) if !f.is_none() => one_scalar(f)?,
+            _ if m.meta.lim => return Err(PyTypeError::new_err("f_v missing")),
+            _ => 0.0,
+        };
+        let mut out = [0.0f64; 64];
+        {
+            let mut ws = self.ws();
+            if let Some(zr) = &zr {
+                ws.set_z(m, zr.as_slice()?).map_err(to_py)?;
+            }
+            f(m, &mut ws, [a.as_slice()?, b.as_slice()?, c.as_slice()?], fv, &mut out[..n]).map_err(to_py)?;
+        }
+        let res = unsafe { PyArrayDyn::<f64>::new(py, shape, false) };
+        // SAFETY: a fresh array of n values that nothing else references yet.
+        unsafe { res.as_slice_mut() }.map_err(|_| bad("output not contiguous".into()))?.copy_from_slice(&out[..n]);
+        Ok(res)
     }
 }
 
@@ -225,7 +138,7 @@ impl Engine {
     fn new(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
         let model = py.detach(|| Model::load(&path)).map_err(to_py)?;
         let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws })
+        Ok(Engine { model, ws, batch: Mutex::new(vec![]) })
     }
 
     /// Load from the bytes of a weight file.
@@ -233,7 +146,7 @@ impl Engine {
     fn from_bytes(data: &[u8]) -> PyResult<Self> {
         let model = Model::from_bytes(data).map_err(to_py)?;
         let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws })
+        Ok(Engine { model, ws, batch: Mutex::new(vec![]) })
     }
 
     #[getter]
@@ -316,13 +229,10 @@ impl Engine {
         }
         Ok(d)
     }
-    /// Code path in use: "avx2-fma" or "portable".
+    /// Code path in use: "avx512", "avx2-fma" or "portable".
     #[getter]
     fn simd(&self) -> &'static str {
-        match self.model.simd() {
-            crate::Simd::Avx2Fma => "avx2-fma",
-            crate::Simd::Portable => "portable",
-        }
+        self.model.simd().name()
     }
 
     /// τ (N, n) from q, qd, qdd (N, n), z (N, dz), f_v (N,), optional exo torques (N, n).
@@ -348,11 +258,11 @@ impl Engine {
         expect_shape("qd", &s, &[ns, n])?;
         let (s, qdd) = view("qdd", &qdd)?;
         expect_shape("qdd", &s, &[ns, n])?;
-        let o = self.check_opt(ns, &z, &f_v, [&tau_e, &tau_app, &tau_app_d, &tau_app_dd])?;
-        let out = self.per_sample(py, ns, n, &o, |m, ws, i, te, out| {
-            let f = o.f_v.map_or(0.0, |f| f[i]);
-            m.inverse_dynamics(ws, &q[i * n..(i + 1) * n], &qd[i * n..(i + 1) * n], &qdd[i * n..(i + 1) * n], f, te, out)
-        })?;
+        let [z, f_v] = self.z_fv(ns, &z, &f_v)?;
+        let w = [ns, n];
+        let tau_e = [rows("tau_e", &tau_e, &w)?, rows("tau_app", &tau_app, &w)?, rows("tau_app_d", &tau_app_d, &w)?, rows("tau_app_dd", &tau_app_dd, &w)?];
+        let s = Samples { z, f_v, tau_e };
+        let out = self.per_sample(py, ns, n, |p, wss, out| self.model.inverse_dynamics_many(p, wss, q, qd, qdd, s, out))?;
         Ok(PyArray1::from_vec(py, out))
     }
 
@@ -377,12 +287,40 @@ impl Engine {
         expect_shape("qd", &s, &[ns, n])?;
         let (s, tau) = view("tau", &tau)?;
         expect_shape("tau", &s, &[ns, n])?;
-        let o = self.check_opt(ns, &z, &f_v, [&tau_e, &tau_app, &None, &None])?;
-        let out = self.per_sample(py, ns, n, &o, |m, ws, i, te, out| {
-            let f = o.f_v.map_or(0.0, |f| f[i]);
-            m.forward_dynamics(ws, &q[i * n..(i + 1) * n], &qd[i * n..(i + 1) * n], &tau[i * n..(i + 1) * n], f, te, out)
-        })?;
+        let [z, f_v] = self.z_fv(ns, &z, &f_v)?;
+        let w = [ns, n];
+        let s = Samples { z, f_v, tau_e: [rows("tau_e", &tau_e, &w)?, rows("tau_app", &tau_app, &w)?, None, None] };
+        let out = self.per_sample(py, ns, n, |p, wss, out| self.model.forward_dynamics_many(p, wss, q, qd, tau, s, out))?;
         Ok(PyArray1::from_vec(py, out))
+    }
+
+    /// Single-sample τ: q, qd, qdd (n,) or (1, n), z (dz,) or (1, dz), f_v a number. `TypeError` for
+    /// anything else (use `inverse_dynamics`).
+    #[pyo3(signature = (q, qd, qdd, z=None, f_v=None))]
+    fn inverse_dynamics_one<'py>(
+        &self,
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+        qd: &Bound<'py, PyAny>,
+        qdd: &Bound<'py, PyAny>,
+        z: Option<&Bound<'py, PyAny>>,
+        f_v: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        self.single(py, [q, qd, qdd], z, f_v, |m, ws, [q, qd, qdd], f, out| m.inverse_dynamics(ws, q, qd, qdd, f, None, out))
+    }
+
+    /// Single-sample q̈, as `inverse_dynamics_one`.
+    #[pyo3(signature = (q, qd, tau, z=None, f_v=None))]
+    fn forward_dynamics_one<'py>(
+        &self,
+        py: Python<'py>,
+        q: &Bound<'py, PyAny>,
+        qd: &Bound<'py, PyAny>,
+        tau: &Bound<'py, PyAny>,
+        z: Option<&Bound<'py, PyAny>>,
+        f_v: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
+        self.single(py, [q, qd, tau], z, f_v, |m, ws, [q, qd, tau], f, out| m.forward_dynamics(ws, q, qd, tau, f, None, out))
     }
 
     /// Flat [H (n·n), c (n), g (n), B (n)] per sample, (N·(n·n+3n),) — split by the wrapper.
@@ -394,36 +332,22 @@ impl Engine {
         qd: PyReadonlyArrayDyn<'py, f64>,
         z: Option<PyReadonlyArrayDyn<'py, f64>>,
     ) -> PyResult<Bound<'py, PyArray1<f64>>> {
-        let n = self.model.n;
+        let (n, dz) = (self.model.n, self.model.dz);
         let (sq, q) = view("q", &q)?;
         let ns = samples("q", &sq, n)?;
         let (s, qd) = view("qd", &qd)?;
         expect_shape("qd", &s, &[ns, n])?;
         // f_v is not needed for the terms, even with LIM
-        let zz = match &z {
-            Some(a) => {
-                let (s, d) = view("z", a)?;
-                expect_shape("z", &s, &[ns, self.model.dz])?;
-                Some(d)
-            }
-            None if self.model.dz > 0 => return Err(bad(format!("this model needs a context z of dimension {}", self.model.dz))),
-            None => None,
-        };
-        let o = Opt { z: zz, f_v: None, tau_e: None, tau_app: None, tau_app_d: None, tau_app_dd: None };
-        let w = n * n + 3 * n;
-        let out = self.per_sample(py, ns, w, &o, |m, ws, i, _, out| {
-            m.terms(ws, &q[i * n..(i + 1) * n], &qd[i * n..(i + 1) * n])?;
-            out[..n * n].copy_from_slice(ws.h());
-            out[n * n..n * n + n].copy_from_slice(ws.c());
-            out[n * n + n..n * n + 2 * n].copy_from_slice(ws.g());
-            out[n * n + 2 * n..].copy_from_slice(ws.b());
-            Ok(())
-        })?;
+        let z = rows("z", &z, &[ns, dz])?;
+        if z.is_none() && dz > 0 {
+            return Err(bad(format!("this model needs a context z of dimension {dz}")));
+        }
+        let out = self.per_sample(py, ns, n * n + 3 * n, |p, wss, out| self.model.terms_many(p, wss, q, qd, z, out))?;
         Ok(PyArray1::from_vec(py, out))
     }
 
     /// Batched rollouts: q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz), f_v (B, T),
-    /// tau_e (B, T, n). Returns flat q and qd, each B·(T+1)·n.
+    /// tau_e (B, T, n); `threads` (None: one per core). Returns flat q and qd, each B·(T+1)·n.
     #[pyo3(signature = (q0, qd0, tau, dt, z=None, f_v=None, tau_e=None, threads=None))]
     #[allow(clippy::too_many_arguments)]
     fn rollout<'py>(
@@ -463,38 +387,24 @@ impl Engine {
             None if dz > 0 => return Err(bad(format!("this model needs a context z of dimension {dz}"))),
             None => ZSeq::Keep,
         };
-        let f_v = match &f_v {
-            Some(a) => {
-                let (s, d) = view("f_v", a)?;
-                expect_shape("f_v", &s, &[b, t_len])?;
-                Some(d)
-            }
-            None if m.meta.lim => return Err(bad("a model with LIM needs the insole force f_v".into())),
-            None => None,
-        };
-        let tau_e = match &tau_e {
-            Some(a) => {
-                let (s, d) = view("tau_e", a)?;
-                expect_shape("tau_e", &s, &[b, t_len, n])?;
-                Some(d)
-            }
-            None => None,
-        };
+        let f_v = rows("f_v", &f_v, &[b, t_len])?;
+        if f_v.is_none() && m.meta.lim {
+            return Err(bad("a model with LIM needs the insole force f_v".into()));
+        }
+        let tau_e = rows("tau_e", &tau_e, &[b, t_len, n])?;
         let mut q = vec![0.0; b * (t_len + 1) * n];
         let mut qd = vec![0.0; b * (t_len + 1) * n];
-        let shared = &self.ws;
+        let pool = pool_for(if b == 1 { Some(1) } else { threads })?;
         py.detach(|| {
             let inp = Inputs { tau, z: zs, f_v, tau_e };
             if b == 1 {
-                let mut ws = shared.lock().unwrap_or_else(|p| p.into_inner());
+                let mut ws = self.ws();
                 if dz == 0 {
                     ws.set_z(m, &[])?;
                 }
                 m.rollout(&mut ws, q0, qd0, inp, dt, &mut q, &mut qd)
             } else {
-                let mut wss: Vec<Workspace> = (0..b).map(|_| m.workspace()).collect();
-                with_threads(threads, || m.rollout_batch(&mut wss, q0, qd0, inp, dt, &mut q, &mut qd))
-                    .unwrap_or_else(|e| Err(Error::InputShape(e.to_string())))
+                self.with_workspaces(b, |wss| m.rollout_batch(&pool, wss, q0, qd0, inp, dt, &mut q, &mut qd))
             }
         })
         .map_err(to_py)?;
@@ -516,78 +426,20 @@ impl Engine {
         };
         let mut z = vec![0.0; b * t_len * dz];
         if t_len > 0 && dz > 0 {
+            let pool = pool_for(None)?;
             py.detach(|| {
-                z.par_chunks_mut(t_len * dz).enumerate().try_for_each(|(bi, zb)| {
-                    let mut st = m.encoder_state();
-                    for t in 0..t_len {
-                        let o = (bi * t_len + t) * c;
-                        m.encode_step(&mut st, &x[o..o + c], &mut zb[t * dz..(t + 1) * dz])?;
-                    }
-                    Ok::<(), Error>(())
-                })
+                let mut states: Vec<_> = (0..b).map(|_| m.encoder_state()).collect();
+                m.encode_batch(&pool, &mut states, x, &mut z)
             })
             .map_err(to_py)?;
         }
         Ok(PyArray1::from_vec(py, z))
     }
 
-    /// Native per-call cost of a hot path, timed inside Rust (no Python in the loop): the minimum
-    /// over `batches` batches of `per_batch` calls, in seconds. `op`: "inverse", "forward",
-    /// "rollout_step" (a 200-step rollout / 200, constant z) or "encode_step".
+    /// Native per-call cost of a hot path, timed inside Rust (`exolan::timing::time_hot`), seconds.
     #[pyo3(signature = (op, per_batch=200, batches=100))]
     fn time_hot(&self, py: Python<'_>, op: &str, per_batch: usize, batches: usize) -> PyResult<f64> {
-        use std::hint::black_box;
-        use std::time::Instant;
-        let m = &self.model;
-        let n = m.n;
-        let per_batch = per_batch.max(1);
-        let mut ws = m.workspace();
-        let z: Vec<f64> = (0..m.dz).map(|i| (i as f64 * 0.37).sin() * 0.5).collect();
-        ws.set_z(m, &z).map_err(to_py)?;
-        let q: Vec<f64> = (0..n).map(|i| 0.3 + 0.2 * i as f64).collect();
-        let qd: Vec<f64> = (0..n).map(|i| 1.0 - 0.5 * i as f64).collect();
-        let mut out = vec![0.0; n];
-        let t_len = 200;
-        let tau = vec![1.0; t_len * n];
-        let f_v = vec![200.0; t_len];
-        let (mut qo, mut qdo) = (vec![0.0; (t_len + 1) * n], vec![0.0; (t_len + 1) * n]);
-        let mut st = m.encoder_state();
-        let x = vec![0.5; m.context_dim()];
-        let mut zo = vec![0.0; m.dz];
-        let op = op.to_string();
-        let best = py.detach(|| -> Result<f64, Error> {
-            let mut best = f64::INFINITY;
-            for _ in 0..batches.max(1) {
-                let t = Instant::now();
-                let mut calls = per_batch;
-                match op.as_str() {
-                    "inverse" => {
-                        for _ in 0..per_batch {
-                            m.inverse_dynamics(&mut ws, black_box(&q), black_box(&qd), black_box(&qd), 100.0, None, &mut out)?;
-                        }
-                    }
-                    "forward" => {
-                        for _ in 0..per_batch {
-                            m.forward_dynamics(&mut ws, black_box(&q), black_box(&qd), black_box(&qd), 100.0, None, &mut out)?;
-                        }
-                    }
-                    "rollout_step" => {
-                        let zs = if m.dz > 0 { ZSeq::Const(&z) } else { ZSeq::Keep };
-                        m.rollout(&mut ws, &q, &qd, Inputs { tau: &tau, z: zs, f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)?;
-                        calls = t_len;
-                    }
-                    "encode_step" => {
-                        for _ in 0..per_batch {
-                            m.encode_step(&mut st, black_box(&x), &mut zo)?;
-                        }
-                    }
-                    other => return Err(Error::InputShape(format!("unknown op {other:?}"))),
-                }
-                best = best.min(t.elapsed().as_secs_f64() / calls as f64);
-            }
-            Ok(best)
-        });
-        best.map_err(to_py)
+        py.detach(|| crate::timing::time_hot(&self.model, op, per_batch, batches)).map_err(to_py)
     }
 
     /// The applied exoskeleton torque τ_e(t − d) of a recorded sequence (T, n), with the model's

@@ -2,13 +2,11 @@
 //!
 //!   q̈_k = forward_dynamics(q_k, q̇_k, τ_k, z_k, f_v,k),  q̇_{k+1} = q̇_k + dt q̈_k,  q_{k+1} = q_k + dt q̇_{k+1}
 //!
-//! Outputs hold T+1 states, index 0 being the initial one. A batch spreads its elements over rayon's
-//! threads; each element runs the same sequential code in its own workspace, so the result is
-//! bit-identical for every thread count.
+//! Outputs hold T+1 states, index 0 being the initial one. Batches of rollouts: `batch.rs`.
 
-use rayon::prelude::*;
-
-use crate::delan::{check, ExoTorque, Workspace};
+use crate::delan::{ExoTorque, Workspace};
+use crate::delan::eval_dispatch;
+use crate::dynamics::check;
 use crate::error::{Error, Result};
 use crate::model::Model;
 
@@ -63,13 +61,36 @@ impl Model {
         q_out: &mut [f64],
         qd_out: &mut [f64],
     ) -> Result<()> {
+        let t_len = self.rollout_begin(ws, q0, qd0, &inp, dt, q_out, qd_out)?;
+        for k in 0..t_len {
+            self.step_begin(ws, &inp, k, dt, q_out, qd_out)?;
+            let qd = std::mem::take(&mut ws.qdp);
+            eval_dispatch(self, ws, &qd, true);
+            ws.qdp = qd;
+            self.step_end(ws, &inp, k, dt, q_out, qd_out)?;
+        }
+        Ok(())
+    }
+
+    /// Check a rollout's inputs, set a constant z, write the initial state; returns T.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn rollout_begin(
+        &self,
+        ws: &mut Workspace,
+        q0: &[f64],
+        qd0: &[f64],
+        inp: &Inputs,
+        dt: f64,
+        q_out: &mut [f64],
+        qd_out: &mut [f64],
+    ) -> Result<usize> {
         let n = self.n;
         check("q0", q0, n)?;
         check("qd0", qd0, n)?;
         if !(dt.is_finite() && dt > 0.0) {
             return Err(Error::NonFiniteInput(format!("dt must be finite and > 0, got {dt}")));
         }
-        if inp.tau.len() % n != 0 {
+        if !inp.tau.len().is_multiple_of(n) {
             return Err(Error::InputShape(format!("tau has {} values, not a multiple of n = {n}", inp.tau.len())));
         }
         let t_len = inp.tau.len() / n;
@@ -115,118 +136,52 @@ impl Model {
         }
         q_out[..n].copy_from_slice(q0);
         qd_out[..n].copy_from_slice(qd0);
-        let delay = self.ext.delay.as_deref();
-        for k in 0..t_len {
-            if let ZSeq::PerStep(z) = inp.z {
-                ws.set_z(self, &z[k * self.dz..(k + 1) * self.dz])?;
-            }
+        Ok(t_len)
+    }
+
+    /// Step k before the network pass: z_k, the delayed exo torque, the state into `ws.qp`/`ws.qdp`.
+    pub(crate) fn step_begin(&self, ws: &mut Workspace, inp: &Inputs, k: usize, dt: f64, q_out: &[f64], qd_out: &[f64]) -> Result<()> {
+        let n = self.n;
+        if let ZSeq::PerStep(z) = inp.z {
+            ws.set_z(self, &z[k * self.dz..(k + 1) * self.dz])?;
+        }
+        if let (Some(te), Some(d)) = (inp.tau_e, self.ext.delay.as_deref()) {
+            delayed_into(te, n, k, dt, d, &mut ws.tau_e_del);
+        }
+        // the state is in physical coordinates (as torch's ExtendedModel.forward_dynamics)
+        ws.qp.copy_from_slice(&q_out[k * n..(k + 1) * n]);
+        ws.qdp.copy_from_slice(&qd_out[k * n..(k + 1) * n]);
+        Ok(())
+    }
+
+    /// Step k after the network pass: q̈ from H, c, g, B and the extensions, then semi-implicit Euler.
+    pub(crate) fn step_end(&self, ws: &mut Workspace, inp: &Inputs, k: usize, dt: f64, q_out: &mut [f64], qd_out: &mut [f64]) -> Result<()> {
+        let n = self.n;
+        let te_now = inp.tau_e.map(|te| &te[k * n..(k + 1) * n]);
+        let del = std::mem::take(&mut ws.tau_e_del);
+        let tau_e = match (te_now, self.ext.delay.is_some()) {
+            (Some(now), true) => Some(ExoTorque { now, applied: Some(&del), applied_d: None, applied_dd: None }),
+            (Some(now), false) => Some(ExoTorque::now(now)),
+            _ => None,
+        };
+        let f_v = inp.f_v.map_or(0.0, |f| f[k]);
+        let (mut qdd, qd) = (std::mem::take(&mut ws.qdd), std::mem::take(&mut ws.qdp));
+        let r = self.forward_after_eval(ws, &qd, &inp.tau[k * n..(k + 1) * n], f_v, tau_e, &mut qdd);
+        ws.tau_e_del = del;
+        ws.qdp = qd;
+        if r.is_ok() {
             let (qp, qn) = q_out[k * n..(k + 2) * n].split_at_mut(n);
             let (qdp, qdn) = qd_out[k * n..(k + 2) * n].split_at_mut(n);
-            let te_now = inp.tau_e.map(|te| &te[k * n..(k + 1) * n]);
-            let mut del = std::mem::take(&mut ws.tau_e_del);
-            let tau_e = match (te_now, delay) {
-                (Some(now), Some(d)) => {
-                    delayed_into(inp.tau_e.unwrap(), n, k, dt, d, &mut del);
-                    Some(ExoTorque { now, applied: Some(&del), applied_d: None, applied_dd: None })
-                }
-                (Some(now), None) => Some(ExoTorque::now(now)),
-                _ => None,
-            };
-            // the state is in physical coordinates (as torch's ExtendedModel.forward_dynamics)
-            ws.qp.copy_from_slice(qp);
-            let f_v = inp.f_v.map_or(0.0, |f| f[k]);
-            let mut qdd = std::mem::take(&mut ws.qdd);
-            let r = self.forward_unchecked(ws, qdp, &inp.tau[k * n..(k + 1) * n], f_v, tau_e, &mut qdd);
-            ws.tau_e_del = del;
-            if let Err(e) = r {
-                ws.qdd = qdd;
-                return Err(e);
-            }
             for i in 0..n {
                 qdn[i] = qdp[i] + dt * qdd[i];
                 qn[i] = qp[i] + dt * qdn[i];
             }
-            ws.qdd = qdd;
-            if qn.iter().chain(qdn.iter()).any(|v| !v.is_finite()) {
-                return Err(Error::Diverged { step: k + 1 });
-            }
         }
-        Ok(())
-    }
-
-    /// B independent rollouts in parallel, one workspace each (`wss.len() == B`). Shapes:
-    /// q0, qd0 B·n; tau B·T·n; z Const B·dz or PerStep B·T·dz; f_v B·T; tau_e B·T·n;
-    /// outputs B·(T+1)·n. The first failing element (lowest index) decides the error.
-    #[allow(clippy::too_many_arguments)]
-    pub fn rollout_batch(
-        &self,
-        wss: &mut [Workspace],
-        q0: &[f64],
-        qd0: &[f64],
-        inp: Inputs,
-        dt: f64,
-        q_out: &mut [f64],
-        qd_out: &mut [f64],
-    ) -> Result<()> {
-        let n = self.n;
-        let bsz = wss.len();
-        if bsz == 0 {
-            return Ok(());
-        }
-        if q0.len() != bsz * n || qd0.len() != bsz * n {
-            return Err(Error::InputShape(format!("q0 and qd0 must hold B·n = {} values", bsz * n)));
-        }
-        if inp.tau.len() % (bsz * n) != 0 {
-            return Err(Error::InputShape(format!("tau has {} values, not B·T·n with B = {bsz}, n = {n}", inp.tau.len())));
-        }
-        let t_len = inp.tau.len() / (bsz * n);
-        let per_out = (t_len + 1) * n;
-        if q_out.len() != bsz * per_out || qd_out.len() != bsz * per_out {
-            return Err(Error::InputShape(format!("outputs must hold B·(T+1)·n = {} values", bsz * per_out)));
-        }
-        let dz = self.dz;
-        match inp.z {
-            ZSeq::Const(z) if z.len() != bsz * dz => {
-                return Err(Error::InputShape(format!("z has {} values, expected B·dz = {}", z.len(), bsz * dz)))
-            }
-            ZSeq::PerStep(z) if z.len() != bsz * t_len * dz => {
-                return Err(Error::InputShape(format!("z has {} values, expected B·T·dz = {}", z.len(), bsz * t_len * dz)))
-            }
-            _ => {}
-        }
-        if inp.f_v.is_some_and(|f| f.len() != bsz * t_len) {
-            return Err(Error::InputShape(format!("f_v must hold B·T = {} values", bsz * t_len)));
-        }
-        if inp.tau_e.is_some_and(|f| f.len() != bsz * t_len * n) {
-            return Err(Error::InputShape(format!("tau_e must hold B·T·n = {} values", bsz * t_len * n)));
-        }
-        wss.par_iter_mut()
-            .zip(q_out.par_chunks_mut(per_out))
-            .zip(qd_out.par_chunks_mut(per_out))
-            .enumerate()
-            .for_each(|(b, ((ws, qo), qdo))| {
-                let sub = Inputs {
-                    tau: &inp.tau[b * t_len * n..(b + 1) * t_len * n],
-                    z: match inp.z {
-                        ZSeq::Keep => ZSeq::Keep,
-                        ZSeq::Const(z) => ZSeq::Const(&z[b * dz..(b + 1) * dz]),
-                        ZSeq::PerStep(z) => ZSeq::PerStep(&z[b * t_len * dz..(b + 1) * t_len * dz]),
-                    },
-                    f_v: inp.f_v.map(|f| &f[b * t_len..(b + 1) * t_len]),
-                    tau_e: inp.tau_e.map(|f| &f[b * t_len * n..(b + 1) * t_len * n]),
-                };
-                ws.status = self.rollout(ws, &q0[b * n..(b + 1) * n], &qd0[b * n..(b + 1) * n], sub, dt, qo, qdo).err();
-            });
-        for (b, ws) in wss.iter_mut().enumerate() {
-            if let Some(e) = ws.status.take() {
-                return Err(match e {
-                    Error::Diverged { step } => Error::Diverged { step },
-                    Error::IllConditioned { det, cond } => Error::IllConditioned { det, cond },
-                    Error::InputShape(m) => Error::InputShape(format!("batch element {b}: {m}")),
-                    Error::NonFiniteInput(m) => Error::NonFiniteInput(format!("batch element {b}: {m}")),
-                    other => other,
-                });
-            }
+        ws.qdd = qdd;
+        r?;
+        let next = (k + 1) * n..(k + 2) * n;
+        if q_out[next.clone()].iter().chain(&qd_out[next]).any(|v| !v.is_finite()) {
+            return Err(Error::Diverged { step: k + 1 });
         }
         Ok(())
     }

@@ -183,7 +183,7 @@ fn canonical(file: Vec<u8>) -> Vec<u8> {
     // serde_json's default map is ordered by key
     let header: serde_json::Value = serde_json::from_slice(&file[8..8 + hl]).unwrap();
     let mut h = serde_json::to_vec(&header).unwrap();
-    while h.len() % 8 != 0 {
+    while !h.len().is_multiple_of(8) {
         h.push(b' ');
     }
     let mut out = Vec::with_capacity(8 + h.len() + file.len() - 8 - hl);

@@ -197,7 +197,7 @@ fn unforced_motion_conserves_energy() {
 
 #[test]
 fn simd_levels_agree() {
-    // The AVX2+FMA and portable paths agree to rounding; forcing a level works.
+    // AVX-512 and AVX2+FMA agree bit for bit, the portable path to rounding; forcing a level works.
     use exolan::Simd;
     for cfg in configs() {
         let mut m = model(&cfg);
@@ -220,10 +220,19 @@ fn simd_levels_agree() {
             (tau, z)
         };
         let best = m.simd();
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
         let (a, za) = run(&m);
         let (b, zb) = run(&m);
-        assert_eq!(a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
-        assert_eq!(za.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), zb.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
+        assert_eq!(bits(&a), bits(&b));
+        assert_eq!(bits(&za), bits(&zb));
+        if best == Simd::Avx512 {
+            // the same sums in the same order with the same fused operations: the same bits
+            m.set_simd(Some(Simd::Avx2Fma));
+            assert_eq!(m.simd(), Simd::Avx2Fma);
+            let (c, zc) = run(&m);
+            assert_eq!(bits(&a), bits(&c), "AVX-512 vs AVX2");
+            assert_eq!(bits(&za), bits(&zc), "AVX-512 vs AVX2, encoder");
+        }
         m.set_simd(Some(Simd::Portable));
         assert_eq!(m.simd(), Simd::Portable);
         let (c, zc) = run(&m);
@@ -268,12 +277,12 @@ fn batched_rollouts_are_bit_identical_across_thread_counts() {
     let z = pseudo(4, bsz * t_len * m.dz, 1.0);
     let f_v = pseudo(5, bsz * t_len, 300.0).iter().map(|f| f.abs()).collect::<Vec<_>>();
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = exolan::Pool::new(threads).unwrap();
         let mut wss: Vec<Workspace> = (0..bsz).map(|_| m.workspace()).collect();
         let mut q = vec![0.0; bsz * (t_len + 1) * n];
         let mut qd = q.clone();
-        pool.install(|| {
-            m.rollout_batch(
+        m.rollout_batch(
+                &pool,
                 &mut wss,
                 &q0,
                 &qd0,
@@ -282,7 +291,6 @@ fn batched_rollouts_are_bit_identical_across_thread_counts() {
                 &mut q,
                 &mut qd,
             )
-        })
         .unwrap();
         (q, qd)
     };

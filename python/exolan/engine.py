@@ -127,6 +127,11 @@ class Engine:
 
         tau_e: recorded exo torque (..., n) for the extension terms; tau_app = τ_e(t − d) (see
         `applied_exo`), tau_app_d/_dd its time derivatives (strap compliance)."""
+        if tau_e is None and tau_app is None and tau_app_d is None and tau_app_dd is None:
+            try:  # one plain float64 sample: the native fast path (TypeError: anything else)
+                return self._e.inverse_dynamics_one(q, qd, qdd, z, f_v)
+            except TypeError:
+                pass
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(qdd, "qdd", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead),
@@ -135,6 +140,11 @@ class Engine:
 
     def forward_dynamics(self, q, qd, tau, z=None, f_v=None, tau_e=None, tau_app=None) -> np.ndarray:
         """q̈ = H⁻¹(τ + B f_v − c − g − extension terms), (..., n)."""
+        if tau_e is None and tau_app is None:
+            try:
+                return self._e.forward_dynamics_one(q, qd, tau, z, f_v)
+            except TypeError:
+                pass
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(tau, "tau", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead))
@@ -155,8 +165,8 @@ class Engine:
         Unbatched: q0, qd0 (n,), tau (T, n), z (dz,) or (T, dz), f_v (T,), tau_e (T, n) -> q, qd (T+1, n).
         Batched: q0, qd0 (B, n), tau (B, T, n), z (B, dz), (B, T, dz) or (dz,), f_v (B, T) -> (B, T+1, n).
         Index 0 is the initial state. dt defaults to the model's (metadata `dt`). A batch is spread over
-        `threads` threads (default: rayon's global pool, RAYON_NUM_THREADS or all cores); the result is
-        bit-identical for every thread count."""
+        `threads` threads (default: one per core, the engine's own pool); the result is bit-identical
+        for every thread count."""
         n, dz = self.n, self.z_dim
         q0 = _f64(q0, "q0")
         batched = q0.ndim == 2

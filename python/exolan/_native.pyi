@@ -1,0 +1,103 @@
+"""Type stub of the Rust engine's binding (rust/python.rs). Arrays are float64 numpy arrays, C-contiguous for
+the batch methods; `tests/test_native_stub.py` checks this file against the built module."""
+
+from os import PathLike
+
+import numpy as np
+import numpy.typing as npt
+
+_F64 = npt.NDArray[np.float64]
+
+__version__: str
+FORMAT_VERSION: str
+
+def sum(xs: _F64) -> float:
+    """Sum of a contiguous 1-D array, read without copying (a build test of the binding)."""
+
+def scale_in_place(xs: _F64, k: float) -> int:
+    """Multiply a contiguous 1-D array by k in place; returns the address of the data it used."""
+
+class Engine:
+    """A loaded model; batch methods take arrays with the leading dimension N or B in place."""
+
+    def __new__(cls, path: str | PathLike[str]) -> Engine: ...
+    @staticmethod
+    def from_bytes(data: bytes) -> Engine: ...
+    @property
+    def n(self) -> int: ...
+    @property
+    def z_dim(self) -> int: ...
+    @property
+    def context_dim(self) -> int: ...
+    @property
+    def method(self) -> str: ...
+    @property
+    def lim(self) -> bool: ...
+    @property
+    def encoder(self) -> str: ...
+    @property
+    def joint_names(self) -> list[str]: ...
+    @property
+    def joint_types(self) -> list[str]: ...
+    @property
+    def context_channels(self) -> list[str]: ...
+    @property
+    def dt(self) -> float: ...
+    @property
+    def extensions(self) -> list[str]: ...
+    @property
+    def metadata(self) -> dict[str, str]: ...
+    @property
+    def simd(self) -> str: ...
+    def inverse_dynamics(
+        self,
+        q: _F64,
+        qd: _F64,
+        qdd: _F64,
+        z: _F64 | None = None,
+        f_v: _F64 | None = None,
+        tau_e: _F64 | None = None,
+        tau_app: _F64 | None = None,
+        tau_app_d: _F64 | None = None,
+        tau_app_dd: _F64 | None = None,
+    ) -> _F64:
+        """τ, flat (N·n,), from q, qd, qdd (N, n), z (N, dz), f_v (N,), exo torques (N, n)."""
+    def forward_dynamics(
+        self,
+        q: _F64,
+        qd: _F64,
+        tau: _F64,
+        z: _F64 | None = None,
+        f_v: _F64 | None = None,
+        tau_e: _F64 | None = None,
+        tau_app: _F64 | None = None,
+    ) -> _F64:
+        """q̈, flat (N·n,)."""
+    def inverse_dynamics_one(
+        self, q: _F64, qd: _F64, qdd: _F64, z: _F64 | None = None, f_v: float | _F64 | None = None
+    ) -> _F64:
+        """One sample ((n,) or (1, n)) with the GIL held; TypeError for anything else."""
+    def forward_dynamics_one(
+        self, q: _F64, qd: _F64, tau: _F64, z: _F64 | None = None, f_v: float | _F64 | None = None
+    ) -> _F64:
+        """One sample, as inverse_dynamics_one."""
+    def terms(self, q: _F64, qd: _F64, z: _F64 | None = None) -> _F64:
+        """[H, c, g, B] per sample, flat (N·(n·n + 3n),)."""
+    def rollout(
+        self,
+        q0: _F64,
+        qd0: _F64,
+        tau: _F64,
+        dt: float,
+        z: _F64 | None = None,
+        f_v: _F64 | None = None,
+        tau_e: _F64 | None = None,
+        threads: int | None = None,
+    ) -> tuple[_F64, _F64]:
+        """q and qd, each flat (B·(T+1)·n,), from q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz)."""
+    def encode(self, x: _F64) -> _F64:
+        """z, flat (B·T·dz,), streamed from zero state over x (B, T, C)."""
+    def time_hot(self, op: str, per_batch: int = 200, batches: int = 100) -> float:
+        """Seconds per call of a hot path timed inside Rust (minimum over batches)."""
+    def applied_exo(self, tau_e: _F64, dt: float) -> _F64:
+        """τ_e(t − d), flat (T·n,), for a recorded (T, n) sequence with the model's delay."""
