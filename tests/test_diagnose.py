@@ -70,7 +70,7 @@ def test_linear_drive_viscous_friction_layout2(tmp_path, viscous):
     seed = int(rng.integers(1000))
     b = float(rng.uniform(4.0, 12.0)) if viscous else None     # N s/m
     trials, truth = linear_drive(n_trials=3, seconds=16.0, seed=seed, viscous=b)
-    rep = diagnose(trials, out=tmp_path, quick=True, hidden=16, steps_base=500, steps_refit=200,
+    rep = diagnose(trials, out=tmp_path, quick=True, hidden=16, steps_base=500, steps_refit=200, physics_first=False,
                    effects=("viscous_damping", "coulomb_friction", "torque_bias"), verbose=False)
     found = _accepted(rep)
     msg = f"seed {seed}, b {b}: findings {rep['findings']}"
@@ -108,7 +108,7 @@ def test_linear_drive_viscous_and_coulomb_friction_both_found(tmp_path):
     seed = int(rng.integers(1000))
     b, fc = float(rng.uniform(4.0, 12.0)), float(rng.uniform(2.0, 5.0))      # N s/m, N
     trials, truth = linear_drive(n_trials=3, seconds=16.0, seed=seed, viscous=b, coulomb=fc)
-    rep = diagnose(trials, out=tmp_path, quick=True, hidden=16, steps_base=500, steps_refit=200,
+    rep = diagnose(trials, out=tmp_path, quick=True, hidden=16, steps_base=500, steps_refit=200, physics_first=False,
                    effects=("viscous_damping", "coulomb_friction", "torque_bias"), verbose=False)
     msg = f"seed {seed}, b {b}, Fc {fc}: findings {rep['findings']}"
     assert sorted(_accepted(rep)) == [("coulomb_friction", "x"), ("viscous_damping", "x")], msg
