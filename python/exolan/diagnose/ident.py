@@ -270,7 +270,7 @@ TERMS: dict[str, Term] = {t.effect: t for t in [
 
 def hac_lags(r: np.ndarray) -> int:
     """Newey-West lags: the block length of the residual's ACF (`stats.block_length`), at least 1."""
-    return int(max(1, min(stats.block_length(r), 2000)))
+    return int(max(1, min(stats.block_length(r), 500)))
 
 
 def wls(X, y, w):
@@ -292,8 +292,10 @@ def hac_subset(X, y, w, subset: list[int], lags: int | None = None) -> tuple[np.
         Z = Z - Q @ (Q.T @ Z)
     ols = sm.OLS(Z, A).fit()
     L = hac_lags(ols.resid) if lags is None else lags
-    r = ols.get_robustcov_results(cov_type="HAC", maxlags=L, use_correction=True)
-    return np.asarray(r.params), np.asarray(r.bse), L
+    r = ols.get_robustcov_results(cov_type="HAC", maxlags=L, use_correction=False)
+    # the small-sample factor N/(N − p) of the full regression (p: all its columns, the partialled ones too)
+    N = len(Z)
+    return np.asarray(r.params), np.asarray(r.bse) * math.sqrt(N / max(N - X.shape[1], 1)), L
 
 
 @dataclass
