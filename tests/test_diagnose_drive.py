@@ -43,7 +43,9 @@ def test_drive_frictions_and_offset_within_10_percent_in_two_minutes(tmp_path):
     truth = _draw(np.random.default_rng(seed))
     t, x, F, _ = servo_drive(seed=seed, **truth)
     write_layout2(tmp_path / "drive", t, x, F)
-    rep, wall, out = _cli_diagnose(tmp_path / "drive.csv", tmp_path / "out")
+    # --quick: the learned base's schedule of the main job's diagnosis; the sizes come from the parametric base
+    # either way (the default schedule measured 104 s alone at a load of 3-5, 325 s beside the fast suite)
+    rep, wall, out = _cli_diagnose(tmp_path / "drive.csv", tmp_path / "out", "--quick")
     msg = f"seed {seed}, truth {truth}, {wall:.0f} s: findings {rep['findings']}"
     found = {f["effect"]: f for f in rep["findings"]}
     assert sorted(found) == ["coulomb_friction", "viscous_damping"], msg

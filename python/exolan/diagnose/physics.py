@@ -139,11 +139,10 @@ def _held_gain(e_without: np.ndarray, e_with: np.ndarray, n_boot: int, seed: int
     return dict(gain=float(b["mean"]), ci=[float(b["ci"][0]), float(b["ci"][1])])
 
 
-def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
-             max_delay: float = 0.1, n_boot: int = 400, log=None) -> PhysicsResult:
-    """Physics first (module docstring): the parametric base and forward selection of the candidate terms."""
+def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
+          max_delay: float = 0.1) -> PhysicsResult:
+    """The parametric base fitted per joint (weighted) and the family of candidates; no selection yet."""
     t0 = time.time()
-    log = log or (lambda msg: None)
     sig = ident.signals(flat, cutoff_hz)
     X_raw, names = ident.base_columns(sig.q, sig.qd, sig.qdd, sig)
     Xb = sig.lp(X_raw)
@@ -159,6 +158,41 @@ def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = i
     cands = [(e, j) for e in effects if e in ident.TERMS for j in joint_ids
              if flat.has_exo or not LIBRARY[e].needs_exo]
     res = PhysicsResult(alpha=alpha, family=len(cands), cutoff_hz=sig.cutoff)
+    res._probs, res._fits, res._cands, res._joint_ids = probs, cur, cands, list(joint_ids)
+    res.seconds = time.time() - t0
+    return res
+
+
+def saturated_held(res: PhysicsResult, flat) -> np.ndarray:
+    """Per held-out row of the flat: the squared error (mass-normalised, summed over the joints) of the parametric
+    base with every linear candidate term at once — the most the parametric family explains without a grid."""
+    held_idx = flat.index("held").numpy()
+    e = np.zeros(len(held_idx))
+    for j, prob in res._probs.items():
+        lin = [x for x, jj in res._cands if jj == j and ident.TERMS[x].grid is None]
+        e += prob.held_sq(prob.fit(lin, intervals=False), held_idx)
+    return e
+
+
+def single_term(res: PhysicsResult, effect: str, j: int, joint: str) -> TermEstimate | None:
+    """One term alone with the parametric base (the learned path's cross-check of its own findings)."""
+    if effect not in ident.TERMS or (effect, j) not in res._cands:
+        return None
+    prob = res._probs[j]
+    return _estimate(prob, prob.fit([effect]), effect, joint)
+
+
+def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
+             max_delay: float = 0.1, n_boot: int = 400, log=None) -> PhysicsResult:
+    """Physics first (module docstring): the parametric base and forward selection of the candidate terms."""
+    return select(setup(flat, effects, joint_ids, alpha, cutoff_hz, max_delay), flat, n_boot, log)
+
+
+def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResult:
+    """Forward selection under Holm's thresholds, rivals, and the final joint fits (module docstring)."""
+    t0 = time.time() - res.seconds
+    log = log or (lambda msg: None)
+    probs, cur, cands, joint_ids, alpha = res._probs, res._fits, res._cands, res._joint_ids, res.alpha
     pool, r = list(cands), 0
     accepted = {j: [] for j in joint_ids}
     while pool:

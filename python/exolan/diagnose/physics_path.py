@@ -1,9 +1,10 @@
 """The diagnosis where the parametric base explains the data: the physics-first findings, the learned base's
 cross-check, the extended model (the learned base with the terms held at their physical sizes) and its gain.
 
-When this path is taken (`adequacy`): the parametric base with its accepted terms is at least as good on the
-held-out segments as the learned reference (the paired difference's block-bootstrap 95 % interval does not lie
-above 0). Then the network has nothing to add that the sizes need, and the expensive joint refits of every
+When this path is taken (`adequacy`): the parametric base with every linear candidate at once is not worse on
+the held-out segments than the learned reference (else the selection is not run at all: a misfitting base pushes
+its misfit into every candidate), and then the parametric base with its accepted terms is at least as good as the
+learned reference (the paired difference's block-bootstrap 95 % interval does not lie above 0). Then the network has nothing to add that the sizes need, and the expensive joint refits of every
 candidate (`procedure.run`'s steps 2-7) are skipped. Otherwise the learned path runs and every candidate carries
 the parametric estimate beside its own (`attach`).
 """
@@ -28,15 +29,16 @@ RULE = ("Physics first: every candidate term was fitted jointly with a parametri
         "it is ambiguous.")
 
 
-def adequacy(phys: physics.PhysicsResult, ref, flat, joint_ids, n_boot: int) -> dict:
-    """Is the parametric base (with its terms) at least as good on held-out data as the learned reference?"""
+def adequacy(e_param: np.ndarray, ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
+    """Is the parametric model (held-out squared errors `e_param` on the flat's held rows) at least as good on
+    held-out data as the learned reference?"""
     held = flat.index("held")
     e = ((predict(ref, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
     e_learned = e[:, joint_ids].sum(1)
-    ok = np.isfinite(phys.e_held)
-    b = stats.bootstrap_mean(phys.e_held[ok] - e_learned[ok], n_boot=n_boot)
-    return jsonable(dict(parametric_mse=float(np.mean(phys.e_held[ok])), learned_mse=float(np.mean(e_learned[ok])),
-                         difference=b["mean"], ci=b["ci"], adequate=bool(b["ci"][0] <= 0),
+    ok = np.isfinite(e_param)
+    b = stats.bootstrap_mean(e_param[ok] - e_learned[ok], n_boot=n_boot)
+    return jsonable(dict(parametric_mse=float(np.mean(e_param[ok])), learned_mse=float(np.mean(e_learned[ok])),
+                         difference=b["mean"], ci=b["ci"], adequate=bool(b["ci"][0] <= 0), model=what,
                          rule="parametric base adequate where the held-out difference parametric − learned is not "
                               "above 0 (block-bootstrap 95 % CI)"))
 
@@ -118,7 +120,14 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
         st, why = phys.status.get(key, (None, None))
         m = phys.estimates.get(key)
         if st is None:
-            continue
+            if e.get("status") != "accepted":
+                continue
+            # the selection did not run (the parametric family explains less than the learned base): the
+            # learned path's finding beside the same term alone with the parametric base
+            m = physics.single_term(phys, e["effect"], key[1], e["joint"])
+            if m is None:
+                continue
+            st, why = "not selected", "the parametric base explains less than the learned base: a single-term fit"
         e["parametric"] = dict(status=st, reason=why, **(m.to_json() if m else {}))
         if m and e.get("status") == "accepted" and e.get("ci"):
             lo, hi = e["ci"]

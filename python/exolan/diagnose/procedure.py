@@ -1468,11 +1468,11 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
 
     phys = None
     if s.physics_first:
-        from .physics import identify
-        phys = identify(flat, s.effects, [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints],
-                        alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay, n_boot=max(s.n_boot // 2, 200),
-                        log=lambda m: _log(s, m))
-        _log(s, phys.summary(flat.joints))
+        from . import physics
+        phys = physics.setup(flat, s.effects, [j for j, nm in enumerate(flat.joints) if s.joints is None or
+                                               nm in s.joints], alpha=s.alpha, cutoff_hz=s.cutoff_hz,
+                             max_delay=s.max_delay)
+        _log(s, f"parametric base fitted ({phys.seconds:.1f} s)")
 
     # 1. base model (slow context), then the reference refit and its twin for the noise floor
     t0 = time.time()
@@ -1510,8 +1510,17 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     adequate = None
     if phys is not None:
         from . import physics, physics_path
-        physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), joint_ids, log=lambda m: _log(s, m))
-        adequate = physics_path.adequacy(phys, ref, flat, joint_ids, n_boot=s.n_boot)
+        # the parametric family at its most (every linear term at once) against the learned reference: where even
+        # that is worse on held-out data, the parametric base cannot decide, and its selection is not run
+        adequate = physics_path.adequacy(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
+                                         what="the parametric base with every linear candidate term")
+        if adequate["adequate"]:
+            physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: _log(s, m))
+            _log(s, phys.summary(flat.joints))
+            physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), joint_ids,
+                                log=lambda m: _log(s, m))
+            adequate = physics_path.adequacy(phys.e_held, ref, flat, joint_ids, n_boot=s.n_boot,
+                                             what="the parametric base with its accepted terms")
         _log(s, f"parametric base held-out MSE {adequate['parametric_mse']:.4g}, learned {adequate['learned_mse']:.4g} "
                 f"({torque_unit(flat)})²: " + ("physics first decides" if adequate["adequate"] else
                                               "the learned base explains more: the learned path decides"))
