@@ -463,7 +463,7 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=
 
         monkeypatch.setattr(P, "_param_ci", changed)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0, coulomb=coulomb)
-    rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
+    rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
                    effects=("viscous_damping", "coulomb_friction"), verbose=False, **settings)
     return rep, fits
 
@@ -785,7 +785,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
 
         monkeypatch.setattr(P, "_paired_confirm", paired)
         seen.clear(), fits.clear()
-        rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60,
+        rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
                        effects=("viscous_damping", "coulomb_friction"), verbose=False)
         tried = {e["effect"]: e for e in rep["findings"] + rep["rejected"] if "from_scratch" in e}
         # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison, and at
@@ -1497,7 +1497,7 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
 
         monkeypatch.setattr(P, "_gain", gain)
         monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: g.get("draws", 0) is not None)
-        return diagnose(trials, out=out, quick=True, hidden=8, steps_base=150, steps_refit=60,
+        return diagnose(trials, out=out, quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
                         effects=("viscous_damping",), verbose=False)
 
     rep = run(tmp_path / "a", sizes_win=True)
@@ -1597,11 +1597,15 @@ def test_the_cli_flags_reach_the_diagnosis_settings(tmp_path, monkeypatch, capsy
     seen = {}
     monkeypatch.setattr(D, "diagnose", lambda data, model=None, out=None, quick=False, **kw: seen.update(kw) or
                         {"findings": []})
-    assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--computed-gain-limit", "--unweighted",
+    assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--measured-gain-limit", "--unweighted",
                  "--measured-delay-limit", "--no-adapt-model", "--no-lim-cop", "--no-pelvis-surge", "--pelvis-tilt",
-                 "--seed", "3", "--no-rescue", "--optima", "3", "--paired-seeds", "2"]) == 0
-    assert seen == dict(inject_gain=False, inject_delay=True, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
-                        pelvis_tilt=True, seed=3, rescue=False, n_optima=3, n_paired=2)
+                 "--seed", "3", "--no-rescue", "--optima", "3", "--paired-seeds", "2", "--learned-only"]) == 0
+    assert seen == dict(inject_gain=True, inject_delay=True, weighted=False, adapt_model=False, lim_cop=False, pelvis_surge=False,
+                        pelvis_tilt=True, seed=3, rescue=False, n_optima=3, n_paired=2, physics_first=False)
+    # the gain's limit is computed by default (no refits); the old switch still parses and changes nothing
+    seen.clear()
+    assert main(["diagnose", str(tmp_path), "--out", str(tmp_path / "d"), "--computed-gain-limit"]) == 0
+    assert seen == {} and D.Settings().inject_gain is False
     assert set(seen) <= {f.name for f in dataclasses.fields(D.Settings)}
     for flag, bad in (("--optima", "0"), ("--paired-seeds", "-1"), ("--optima", "two")):
         with pytest.raises(SystemExit) as exc:      # refused while parsing, before any data is read

@@ -231,8 +231,13 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pelvis-tilt", action="store_true",
                    help="add the optional pelvis-tilt base term (the other hip's angle as a coordinate shift)")
     p.add_argument("--computed-gain-limit", action="store_true",
-                   help="report the exo torque gain's detection limit as computed at the base's misfit (optimistic) "
-                        "instead of measuring it by writing a known gain into the data (saves one or two base fits)")
+                   help="(the default now; kept for old scripts) the gain's detection limit computed at the base's misfit")
+    p.add_argument("--measured-gain-limit", action="store_true",
+                   help="also measure the exo torque gain's detection limit by writing a known gain into the data "
+                        "(one or two more base fits)")
+    p.add_argument("--learned-only", action="store_true",
+                   help="skip the physics-first identification against a parametric rigid-body base; size the terms "
+                        "jointly with the learned base only")
     p.add_argument("--no-rescue", action="store_true",
                    help="do not fit a friction from scratch where its warm refit fails the gain rules (saves a base "
                         "fit per such friction, and the term-free fits below when nothing else needs them), nor try a "

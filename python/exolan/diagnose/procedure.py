@@ -189,8 +189,12 @@ class Settings:
     pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (fit.PelvisSurge)
     lim_cop: bool = True        # base: the insole mapping's lever arms see the centre of pressure, B(q, x_cop, z)
     adapt_model: bool = True    # a given model (`--model`): fit it at its pooled context first (fit.PooledContext)
-    inject_gain: bool = True    # the gain's detection limit by injection and recovery (`limits_by_injection`), not computed
+    inject_gain: bool = False   # the gain's detection limit also by injection and recovery (`limits_by_injection`;
+                                # refits: only when asked, `--measured-gain-limit`); computed at the base's misfit always
     inject_delay: bool = False  # the same for the actuation delay's (off: a delay already in the data confounds it)
+    physics_first: bool = True  # size every candidate against a parametric rigid-body base first (`physics`)
+    alpha: float = 0.05         # family-wise level of the physics-first accept decisions (Holm over the candidates)
+    cutoff_hz: float = 25.0     # zero-phase low-pass of q and τ for the parametric identification (`ident`)
     verbose: bool = True
 
     def __post_init__(self):
@@ -200,9 +204,22 @@ class Settings:
                 raise ValueError(f"Settings.{name} must be at least 1, got {getattr(self, name)}")
 
 
+_LAST_LINE = [time.time()]     # when the last progress line was printed (`_log`, `_heartbeat`)
+HEARTBEAT_S = 25.0              # a line at least this often while a fit runs (the user sees it is alive)
+
+
 def _log(s: Settings, msg: str):
     if s.verbose:
+        _LAST_LINE[0] = time.time()
         print(f"[diagnose {time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _heartbeat(s: Settings, what: str, steps: int):
+    """A `fit.train` progress callback: a line saying which fit and step, when none was printed for a while."""
+    def tick(step: int, loss: float) -> None:
+        if s.verbose and time.time() - _LAST_LINE[0] >= HEARTBEAT_S:
+            _log(s, f"... {what}: step {step + 1}/{steps}, loss {loss:.4g}")
+    return tick
 
 
 def _advanced(flat: Flat, k: np.ndarray) -> Flat:
@@ -444,7 +461,8 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
             inj.tau[:, j] += v * te if eff == "torque_gain" else te - _delayed(te, flat.lengths, v, flat.dt)
         inj.weight = None
         base_i = copy.deepcopy(base_start)
-        train(base_i, inj, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+        train(base_i, inj, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
+              progress=_heartbeat(s, "detection limit by injection: base fit", s.steps_base))
         if s.weighted:
             inj.weight = misfit_weights(base_i, inj)
         w = inj.weight[held].numpy().astype(np.float64) if s.decide_weighted and inj.weight is not None else None
@@ -1163,9 +1181,18 @@ def load_trials(data):
     return list(getattr(ds, "trials", ds))
 
 
+def _terms_text(model) -> str:
+    """"with viscous_damping:0, ..." for a progress line, or "of the base"."""
+    eff = getattr(model, "effects", None)
+    if not eff:
+        return "of the base"
+    return "with " + ", ".join(f"{e}:{j}" for e, js in eff.items() for j in js)
+
+
 def _refit(model, flat: Flat, s: Settings, seed_offset: int = 1):
     """A warm-start refit with the shared schedule (steps, rates, batch, Polyak averaging, acceleration term)."""
     return train(model, flat, s.steps_refit, lr=s.lr_refit, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed + seed_offset,
+                 progress=_heartbeat(s, "warm refit " + _terms_text(model), s.steps_refit),
                  average=s.average, w_acc=s.w_acc)
 
 
@@ -1281,6 +1308,7 @@ def _fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Mod
     confused = _inertia_recipe(effects) if confused is None else bool(confused)
     w_acc = 0.0 if confused else s.w_acc
     train(m, flat, s.steps_base, lr=s.lr_base, lr_ext=s.lr_ext, batch=s.batch, seed=s.seed, w_acc=w_acc,
+          progress=_heartbeat(s, "fit from scratch " + _terms_text(m), s.steps_base),
           weighted=False)
     _refit(m, flat, replace(s, w_acc=w_acc))
     if confused:
@@ -1393,6 +1421,38 @@ def _describe_base(base, flat: Flat, s: Settings, given: bool) -> str:
     return text + (f", adapted to the data's training segments ({s.steps_base} steps)" if s.adapt_model else "")
 
 
+def _limits(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, w_held, sigma_r: float) -> dict:
+    """The detection limits of the exo-driven terms: computed at the base's misfit; measured by injection (refits)
+    only where asked (`Settings.inject_gain`, `inject_delay`)."""
+    limits = detection_limits(flat, ref, held, w_held, sigma_r, s)
+    if s.inject_gain or s.inject_delay:
+        t1 = time.time()
+        measured = limits_by_injection(flat, s, base_start, ref, held, sigma_r, limits, gain=s.inject_gain,
+                                       delay=s.inject_delay)
+        for name, v in measured["torque_gain"].items():
+            computed = limits["torque_gain"][name]
+            limits["torque_gain"][name] = dict(computed, **v, method="injection", computed=dict(
+                theta_limit=computed["theta_limit"], k_below=computed["k_below"], k_above=computed["k_above"]))
+            _log(s, f"torque gain on {name}: a gain of {v['injected_k']:.3g} written into the data was recovered as "
+                    f"{v['recovered_k']:.3g} on the own variation, held-out gain {v['injected_gain']:.3g} "
+                    f"[{v['injected_gain_ci'][0]:.3g}, {v['injected_gain_ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
+        for name, v in measured["actuation_delay"].items():
+            computed = limits["actuation_delay"][name]
+            limits["actuation_delay"][name] = dict(computed, **v, method="injection",
+                                                   computed=dict(d_limit=computed["d_limit"]))
+            _log(s, f"actuation delay on {name}: a delay of {1e3 * v['injected_d']:.3g} ms written into the data was "
+                    f"recovered as {1e3 * v['recovered_d']:.3g} ms, held-out gain {v['injected_gain']:.3g} "
+                    f"[{v['injected_gain_ci'][0]:.3g}, {v['injected_gain_ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
+    for name, v in limits["torque_gain"].items():
+        _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
+                f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
+    for name, v in limits["actuation_delay"].items():
+        _log(s, f"actuation delay on {name}: detectable above d ≈ {1e3 * v['d_limit']:.3g} ms" if math.isfinite(
+            v["d_limit"]) else f"actuation delay on {name}: no delay up to {1e3 * v['injected_d']:.3g} ms shows")
+
+    return limits
+
+
 def run(data, model=None, settings: Settings | None = None, trials_loaded=None) -> dict:
     """The whole procedure; returns the result dict (JSON-ready parts plus objects for the report)."""
     s = settings or Settings()
@@ -1406,6 +1466,14 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             f"{len(held)} held out), joints {flat.joints} {flat.joint_types}, exo={flat.has_exo}, "
             f"insole={flat.has_insole}")
 
+    phys = None
+    if s.physics_first:
+        from . import physics
+        phys = physics.setup(flat, s.effects, [j for j, nm in enumerate(flat.joints) if s.joints is None or
+                                               nm in s.joints], alpha=s.alpha, cutoff_hz=s.cutoff_hz,
+                             max_delay=s.max_delay)
+        _log(s, f"parametric base fitted ({phys.seconds:.1f} s)")
+
     # 1. base model (slow context), then the reference refit and its twin for the noise floor
     t0 = time.time()
     base = model if model is not None else make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed,
@@ -1417,7 +1485,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     # reference's held-out MSE stayed 1.6x higher, 3.1e-3 vs 2.0e-3 (N m/kg)², measured on one world)
     base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
     if base_start is not None:
-        train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+        train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
+              progress=_heartbeat(s, "base fit", s.steps_base))
     base_source = _describe_base(base, flat, s, given=model is not None)
     _log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
@@ -1437,8 +1506,28 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     ref = copy.deepcopy(base)
     _refit(ref, flat, s)
     e_ref_user, e_ref = held_errors(ref)
+    joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
+    adequate = None
+    if phys is not None:
+        from . import physics, physics_path
+        # the parametric family at its most (every linear term at once) against the learned reference: where even
+        # that is worse on held-out data, the parametric base cannot decide, and its selection is not run
+        adequate = physics_path.adequacy(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
+                                         what="the parametric base with every linear candidate term")
+        if adequate["adequate"]:
+            physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: _log(s, m))
+            _log(s, phys.summary(flat.joints))
+            physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), joint_ids,
+                                log=lambda m: _log(s, m))
+            adequate = physics_path.adequacy(phys.e_held, ref, flat, joint_ids, n_boot=s.n_boot,
+                                             what="the parametric base with its accepted terms")
+        _log(s, f"parametric base held-out MSE {adequate['parametric_mse']:.4g}, learned {adequate['learned_mse']:.4g} "
+                f"({torque_unit(flat)})²: " + ("physics first decides" if adequate["adequate"] else
+                                              "the learned base explains more: the learned path decides"))
+    physics_decides = bool(adequate and adequate["adequate"])
     deltas, twin_d = [], []
-    for k in range(max(int(s.n_twins), 1)):
+    # the physics path decides nothing on the refit noise: one twin measures it for the report
+    for k in range(1 if physics_decides else max(int(s.n_twins), 1)):
         twin = copy.deepcopy(base)
         _refit(twin, flat, s, 2 + k)
         e_twin = held_errors(twin)[1]
@@ -1449,6 +1538,12 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     sigma_r = float(np.sqrt(np.mean(np.square(deltas))))
     _log(s, f"reference held-out MSE {e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r {sigma_r:.3g} "
             f"({scale}, {len(deltas)} twin refits)")
+
+    if physics_decides:
+        noise = dict(gain=floor["gain"], ci=floor["ci"], sigma=sigma_r, twin_differences=deltas, scale=scale)
+        limits = _limits(flat, s, base_start, ref, held, w_held, sigma_r)
+        return physics_path.report(flat, s, trials, base, ref, base_source, noise, phys, adequate, joint_ids,
+                                   held, limits, lambda m: _log(s, m))
 
     groups, group_kind = sample_groups(flat, held)
 
@@ -1558,31 +1653,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
     baseline["noise_floor"] = dict(gain=floor["gain"], ci=floor["ci"], sigma=sigma_r, twin_differences=deltas,
                                    scale=scale)
     structure = R.residual_structure(ref, flat, held)
-    limits = detection_limits(flat, ref, held, w_held, sigma_r, s)
-    if s.inject_gain or s.inject_delay:
-        t1 = time.time()
-        measured = limits_by_injection(flat, s, base_start, ref, held, sigma_r, limits, gain=s.inject_gain,
-                                       delay=s.inject_delay)
-        for name, v in measured["torque_gain"].items():
-            computed = limits["torque_gain"][name]
-            limits["torque_gain"][name] = dict(computed, **v, method="injection", computed=dict(
-                theta_limit=computed["theta_limit"], k_below=computed["k_below"], k_above=computed["k_above"]))
-            _log(s, f"torque gain on {name}: a gain of {v['injected_k']:.3g} written into the data was recovered as "
-                    f"{v['recovered_k']:.3g} on the own variation, held-out gain {v['injected_gain']:.3g} "
-                    f"[{v['injected_gain_ci'][0]:.3g}, {v['injected_gain_ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
-        for name, v in measured["actuation_delay"].items():
-            computed = limits["actuation_delay"][name]
-            limits["actuation_delay"][name] = dict(computed, **v, method="injection",
-                                                   computed=dict(d_limit=computed["d_limit"]))
-            _log(s, f"actuation delay on {name}: a delay of {1e3 * v['injected_d']:.3g} ms written into the data was "
-                    f"recovered as {1e3 * v['recovered_d']:.3g} ms, held-out gain {v['injected_gain']:.3g} "
-                    f"[{v['injected_gain_ci'][0]:.3g}, {v['injected_gain_ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
-    for name, v in limits["torque_gain"].items():
-        _log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
-                f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
-    for name, v in limits["actuation_delay"].items():
-        _log(s, f"actuation delay on {name}: detectable above d ≈ {1e3 * v['d_limit']:.3g} ms" if math.isfinite(
-            v["d_limit"]) else f"actuation delay on {name}: no delay up to {1e3 * v['injected_d']:.3g} ms shows")
+    limits = _limits(flat, s, base_start, ref, held, w_held, sigma_r)
 
     # 2. screen every candidate post hoc (cheap), then fit the promising ones jointly (warm start, same
     #    schedule and minibatches as the reference)
@@ -2305,12 +2376,18 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
             _add_note(e, f"within twice these data's detection limit for a delay ({1e3 * lim:.3g} ms): likely "
                          f"estimated short (the base keeps part of a delay near the limit; measured: 24 ms planted, "
                          f"computed limit 19.8 ms, found 18.4 ms)")
+    if phys is not None:
+        from . import physics_path
+        physics_path.attach(results, phys, flat)
     findings = [_public(e) for e in results if e["status"] == "accepted"]
     rejected = [_public(e) for e in results if e["status"] != "accepted"]
     report = {"baseline": _strip(baseline), "findings": findings, "rejected": rejected,
               "extended": _strip(extended) if extended else {"note": "nothing found: the base model is kept",
                                                              **_strip(baseline)},
-              "residuals": structure, "detection_limits": limits, "settings": {k: (list(v) if isinstance(v, tuple) else v)
+              "residuals": structure, "detection_limits": limits,
+              "physics": (dict(phys.to_json(flat.joints), adequacy=adequate, path="learned",
+                               rule=physics_path.RULE) if phys is not None else None),
+              "settings": {k: (list(v) if isinstance(v, tuple) else v)
                                                      for k, v in s.__dict__.items()},
               "data": dict(trials=len(trials), samples=int(flat.q.shape[0]), heldout=int(len(held)),
                            torque_unit=torque_unit(flat),
@@ -2331,7 +2408,8 @@ _PUBLIC = ("effect", "joint", "subjects", "subject_gains", "task_invariance", "e
            "heldout_gain_ci", "relative_gain", "relative_gain_ci", "identifiable", "null_gain", "nulls", "rivals", "vs",
            "estimate_warm_start", "ci_warm_start", "warm_start", "estimate_single_term", "ci_single_term",
            "ci_identification", "ci_method", "note", "kind", "conditional_gain",
-           "screen", "subject_form", "subject_form_not_taken", "from_scratch", "warm_fit")
+           "screen", "subject_form", "subject_form_not_taken", "from_scratch", "warm_fit", "parametric",
+           "cross_check")
 
 
 def _public(e: dict) -> dict:

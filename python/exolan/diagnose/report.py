@@ -397,6 +397,39 @@ def _limit_lines(limits: dict) -> list[str]:
     return L
 
 
+def _physics_lines(ph: dict | None, unit: str) -> list[str]:
+    """The physics-first identification (`physics`): its base's fit, every accepted term beside the learned base's
+    cross-check, the Holm steps, and which path decided."""
+    if not ph:
+        return []
+    ad = ph.get("adequacy") or {}
+    L = ["", "## Physics first: the parametric base", "", ph.get("method", ""), ""]
+    L.append(f"Decided by: **{ph.get('path')}** path — held-out MSE of the parametric base with its terms "
+             f"{_fmt(ad.get('parametric_mse'))}, of the learned reference {_fmt(ad.get('learned_mse'))} ({unit})²; "
+             f"difference {_fmt(ad.get('difference'), 3)} CI {_fmt(ad.get('ci'), 3)} ({ad.get('rule', '')}).")
+    for j, v in (ph.get("heldout") or {}).items():
+        L.append(f"- {j}: held-out rms {_fmt(v.get('rms'))} against the recorded torque ({_fmt(v.get('rms_filtered'))} "
+                 f"against its low-pass), R² {_fmt(v.get('r2'), 4)}")
+    for j, b in (ph.get("base") or {}).items():
+        if "columns" not in b:
+            L.append(f"- {j} base: " + ", ".join(f"{k} {_fmt(v['value'])} ± {_fmt(v['se'], 2)}" for k, v in b.items()))
+    cross = ph.get("cross_check") or {}
+    for k, v in (ph.get("estimates") or {}).items():
+        c = cross.get(k)
+        L.append(f"- {k}: {_fmt(v['estimate'])} CI {_fmt(v['ci'], 3)} (p {_fmt(v['p'], 2)})"
+                 + (f"; on the learned base's residual {_fmt(c['estimate'])} CI {_fmt(c['ci'], 3)}" if c else ""))
+    if ph.get("tests"):
+        L.append("")
+        L.append("| step | candidate | p | Holm threshold | estimate | held-out gain [CI] |")
+        L.append("|---|---|---|---|---|---|")
+        for t in ph["tests"]:
+            L.append(f"| {t['step']} | {t['effect']}:{t['joint']} | {_fmt(t['p'], 2)} | {_fmt(t['threshold'], 2)} | "
+                     f"{_fmt(t['estimate'])} | {_fmt(t['heldout_gain'], 3)} {_fmt(t['heldout_gain_ci'], 3)} |")
+    if ph.get("rule"):
+        L += ["", ph["rule"]]
+    return L
+
+
 def markdown(rep: dict) -> str:
     d = rep.get("data", {})
     U = _unit(rep)
@@ -464,6 +497,7 @@ def markdown(rep: dict) -> str:
     amb = [e for e in rep["rejected"] if e["status"] == "ambiguous"]
     for e in amb:
         L.append(f"- ambiguous: {e['effect']} on {e['joint']} — {e.get('reason', '')}")
+    L += _physics_lines(rep.get("physics"), U)
     L.append("")
     L.append("## Before and after (held-out)")
     ext = rep.get("extended", {})

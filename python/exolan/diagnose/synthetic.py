@@ -99,3 +99,71 @@ def linear_drive(n_trials=3, seconds=20.0, dt=0.005, seed=0, mass=3.0, incline=0
     if coulomb is not None:
         effects.append({"effect": "coulomb_friction", "joint": "x", "value": coulomb})
     return trials, effects
+
+
+def _plateau_reference(dt: float, levels=(0.1, 0.2, 0.4), accel: float = 2.0, travel: float = 0.2,
+                       pause: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """One cycle of a position reference with velocity plateaus: out and back at each speed level, a
+    trapezoidal velocity profile (acceleration `accel`), a pause at each end. Returns (x_ref, v_ref)."""
+    v = []
+    for lv in levels:
+        for sgn in (1.0, -1.0):
+            ramp = np.arange(0.0, lv, accel * dt)
+            flat_t = max(travel / lv - lv / accel, 0.0)
+            prof = np.concatenate([ramp, np.full(int(flat_t / dt), lv), ramp[::-1]])
+            v.extend(list(sgn * prof) + [0.0] * int(pause / dt))
+    v = np.asarray(v)
+    return np.cumsum(v) * dt, v
+
+
+def servo_drive(seconds: float = 25.0, dt: float = 0.001, seed: int = 0, mass: float = 95.0, viscous: float = 0.0,
+                coulomb: float = 0.0, offset: float = 0.0, current_noise: float = 3.0, force_noise: float = 1.0,
+                encoder_step: float = 1e-6, v_stick: float = 1e-3, substeps: int = 10):
+    """An electromechanical linear drive on a horizontal rail, closed loop: a PD position loop (10 Hz, with
+    velocity feedforward) tracks a repeated reference with velocity plateaus (`_plateau_reference`); the force the
+    current loop applies is the command plus coloured noise (AR(1), std `current_noise` N); the recorded force is
+    the applied one plus white noise (`force_noise` N); the encoder quantises x to `encoder_step` m.
+
+    Plant: m ẍ = F − b ẋ − Fc tanh(ẋ/v_stick) − offset (Euler with `substeps` substeps per sample).
+    Returns (time, x, F_recorded, truth dict)."""
+    rng = np.random.default_rng(seed)
+    x_ref, v_ref = _plateau_reference(dt)
+    T = int(round(seconds / dt))
+    reps = int(np.ceil(T / len(x_ref)))
+    x_ref = np.concatenate([x_ref + 0.0 * k for k in range(reps)])[:T]
+    v_ref = np.tile(v_ref, reps)[:T]
+    w = 2 * np.pi * 10.0
+    kp, kd = mass * w * w, 2 * 0.7 * mass * w
+    phi = 0.95
+    n_cl = np.zeros(T)
+    e = rng.standard_normal(T) * current_noise * np.sqrt(1 - phi ** 2)
+    for t in range(1, T):
+        n_cl[t] = phi * n_cl[t - 1] + e[t]
+    x = np.zeros(T); F = np.zeros(T)
+    xs, vs = 0.0, 0.0
+    h = dt / substeps
+    for t in range(T):
+        xm = np.round(xs / encoder_step) * encoder_step
+        vm = (xm - x[t - 1]) / dt if t else 0.0
+        x[t] = xm
+        F[t] = kp * (x_ref[t] - xm) + kd * (v_ref[t] - vm) + n_cl[t]
+        for _ in range(substeps):
+            a = (F[t] - viscous * vs - coulomb * np.tanh(vs / v_stick) - offset) / mass
+            vs += a * h
+            xs += vs * h
+    F_rec = F + force_noise * rng.standard_normal(T)
+    truth = dict(mass=mass, viscous=viscous, coulomb=coulomb, offset=offset)
+    return np.arange(T) * dt, x, F_rec, truth
+
+
+def write_layout2(path, time: np.ndarray, q: np.ndarray, tau: np.ndarray, joint: str = "x",
+                  joint_type: str = "prismatic") -> None:
+    """A 1-DoF layout-2 recording (DATA_LAYOUT.md): <path>.csv (time, q_<joint>, tau_<joint>) and <path>.json."""
+    import json
+    from pathlib import Path
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path.with_suffix(".csv"), np.column_stack([time, q, tau]), delimiter=",", fmt="%.9g",
+               header=f"time,q_{joint},tau_{joint}", comments="")
+    units = {"q": "m", "tau": "N"} if joint_type == "prismatic" else {"q": "rad", "tau": "N m"}
+    path.with_suffix(".json").write_text(json.dumps({"joints": [{"name": joint, "type": joint_type}], "units": units}))

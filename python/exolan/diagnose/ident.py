@@ -1,0 +1,436 @@
+"""Physics first: every candidate term sized against a parametric rigid-body base by least squares.
+
+Why: a term fitted jointly with a learned base shares the data with a network that can take part of it (a
+linear drive's viscous and Coulomb friction came out 0.44x and 1.54x of their published values that way,
+issue 38). A base that cannot imitate a term sizes it without that trade: the parametric base below has no
+velocity-odd part, so no dissipation, lag or compliance can hide in it. This is identification as in the
+robotics literature: parallel zero-phase low-pass of q and τ (scipy `sosfiltfilt`), q̇ and q̈ by central
+differences (`np.gradient`), weighted least squares on the training segments, intervals by a Newey-West (HAC)
+sandwich (statsmodels) over time, since the residuals are autocorrelated.
+
+Base (per joint equation, per subject where the data hold several): inertia q̈_k × (1, cos/sin of every
+revolute joint but the first: a serial chain's inertia depends on the distal angles), Coriolis/centripetal
+q̇_a q̇_b × (cos, sin) of those angles (two or more revolute joints), gravity cos/sin of every revolute angle and
+of the sums and differences of pairs (only where it can act: a prismatic axis gets none), a constant (the
+torque offset: `torque_bias`, absorbable), and with insoles the contact term f_v × (1, the same angle functions,
+x_cop) and the other leg's load. Nonlinear-in-parameter terms are sized by a grid over the nonlinear
+parameter with least squares inside (variable projection); their intervals are the HAC sandwich of the
+linearised model at the optimum. Terms and their tests live in `TERMS`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import statsmodels.api as sm
+from scipy import signal
+from scipy import stats as sps
+
+from ..data import finite_runs
+from ..extensions import COULOMB_EPS
+from . import stats
+
+SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
+CUTOFF_HZ = 25.0        # default low-pass of q and τ: above a limb's or a drive's motion, below encoder noise
+
+
+@dataclass
+class Signals:
+    """Signals on the rows of a `fit.Flat` (the same order): kinematics and exo torque low-passed for
+    differentiation, τ through the parallel filter (`lp`); `ok`: rows where they are usable."""
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    tau: np.ndarray
+    tau_e: np.ndarray
+    tau_e_d: np.ndarray
+    tau_e_dd: np.ndarray
+    f_v: np.ndarray
+    f_o: np.ndarray
+    x_cop: np.ndarray
+    tau_raw: np.ndarray     # the recorded τ, unfiltered: held-out errors are the user's
+    mass: np.ndarray        # (N,) body mass of each row (1 for layout 2): errors are mass-normalised as elsewhere
+    ok: np.ndarray
+    train: np.ndarray
+    held: np.ndarray
+    trial: np.ndarray
+    subject: np.ndarray
+    joint_types: tuple
+    dt: float
+    lag_of: list            # per trial: start row, length (delay shifts stay inside their trial)
+    cutoff: float
+    runs: list              # (start, stop) rows of every finite run
+    sos: tuple              # the second (parallel) filter and its pad length
+
+    def lp(self, x: np.ndarray) -> np.ndarray:
+        """x (N,) or (N, k) low-passed with the parallel filter per finite run (NaN kept where it is)."""
+        sos, pad = self.sos
+        out = np.full(x.shape, np.nan)
+        for a, b in self.runs:
+            seg = x[a:b]
+            fin = np.isfinite(seg).all(axis=tuple(range(1, seg.ndim))) if seg.ndim > 1 else np.isfinite(seg)
+            if b - a > pad + 3 and fin.all():
+                out[a:b] = signal.sosfiltfilt(sos, seg, axis=0, padlen=pad)
+        return out
+
+
+def _filtered(x: np.ndarray, runs, sos, padlen: int, dt: float):
+    """(x_f, x_f', x_f'') of x (T, k) over the given finite runs; NaN outside runs too short to filter."""
+    out = [np.full_like(x, np.nan) for _ in range(3)]
+    for a, b in runs:
+        if b - a <= padlen + 3:
+            continue
+        xf = signal.sosfiltfilt(sos, x[a:b], axis=0, padlen=padlen)
+        d1 = np.gradient(xf, dt, axis=0)
+        out[0][a:b], out[1][a:b], out[2][a:b] = xf, d1, np.gradient(d1, dt, axis=0)
+    return out
+
+
+def _design(fc: float, dt: float):
+    return signal.butter(4, fc, fs=1.0 / dt, output="sos"), int(min(3 * round(1.0 / (fc * dt)), 500))
+
+
+def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
+    """Two zero-phase Butterworth low-passes (order 4), per trial and finite run. The first, at four times the
+    cutoff, only for differentiation: q̇, q̈ (and τ̇_e, τ̈_e) by central differences of the low-passed q (τ_e).
+    The second, at the cutoff, filters τ and every regressor column built from those signals (`Signals.lp`),
+    the same filter on both sides of the equation (parallel filtering): a nonlinear column such as the sign of
+    q̇ is then smoothed exactly as the torque's own friction part is — low-passing q̇ before taking its sign
+    would leave a friction-like misfit at every reversal, which a Stribeck term then takes."""
+    dt = float(flat.dt)
+    fc = min(float(cutoff_hz), 0.4 / dt)
+    sos1, pad1 = _design(min(4 * fc, 0.4 / dt), dt)
+    valid = flat.valid.numpy().astype(bool)
+    N, n = flat.q.shape
+    cols = {k: np.full((N, n), np.nan) for k in ("q", "qd", "qdd", "tau_e", "tau_e_d", "tau_e_dd")}
+    one = {k: np.full(N, np.nan) for k in ("f_v", "f_o", "x_cop")}
+    lag_of, runs_all, start = [], [], 0
+    for T in flat.lengths:
+        sl = slice(start, start + T)
+        runs = list(finite_runs(valid[sl]))
+        runs_all += [(start + a, start + b) for a, b in runs]
+        cols["q"][sl], cols["qd"][sl], cols["qdd"][sl] = _filtered(flat.q[sl].double().numpy(), runs, sos1, pad1, dt)
+        te = _filtered(flat.tau_e[sl].double().numpy(), runs, sos1, pad1, dt)
+        cols["tau_e"][sl], cols["tau_e_d"][sl], cols["tau_e_dd"][sl] = te
+        for k in one:
+            one[k][sl] = _filtered(getattr(flat, k)[sl].double().numpy()[:, None], runs, sos1, pad1, dt)[0][:, 0]
+        lag_of.append((start, T))
+        start += T
+    held = flat.held.numpy().astype(bool)
+    trial = flat.trial.numpy()
+    subject = np.array([flat.trial_meta[i]["subject"] for i in range(len(flat.lengths))])[trial]
+    sig = Signals(**cols, **one, tau=None, tau_raw=flat.tau.double().numpy(), mass=flat.mass.double().numpy(),
+                  ok=valid, train=None, held=None, trial=trial, subject=subject, joint_types=tuple(flat.joint_types),
+                  dt=dt, lag_of=lag_of, cutoff=fc, runs=runs_all, sos=_design(fc, dt))
+    sig.tau = sig.lp(sig.tau_raw)
+    sig.ok = valid & np.isfinite(cols["q"]).all(1) & np.isfinite(sig.tau).all(1)
+    sig.train, sig.held = sig.ok & ~held, sig.ok & held
+    return sig
+
+
+# -- the parametric rigid-body base --------------------------------------------------------------------------
+
+def _angle_functions(q: np.ndarray, jt: tuple, distal_only: bool) -> list[np.ndarray]:
+    rev = [a for a, t in enumerate(jt) if t == "revolute"]
+    use = rev[1:] if distal_only else rev
+    out = []
+    for a in use:
+        out += [np.cos(q[:, a]), np.sin(q[:, a])]
+    if not distal_only:
+        for i, a in enumerate(rev):
+            for b in rev[i + 1:]:
+                for comb in (q[:, a] + q[:, b], q[:, a] - q[:, b]):
+                    out += [np.cos(comb), np.sin(comb)]
+    return out
+
+
+def base_columns(q, qd, qdd, sig: Signals, flat_forces: bool = True) -> tuple[np.ndarray, list[str]]:
+    """(N, p) regressor of one joint equation's rigid-body base (shared by every joint's equation: each joint
+    fits its own coefficients), with names. Interacted with subject dummies where there are several."""
+    jt = sig.joint_types
+    N, n = q.shape
+    one = np.ones(N)
+    distal = [one] + _angle_functions(q, jt, distal_only=True)
+    cols, names = [], []
+    for k in range(n):
+        for i, f in enumerate(distal):
+            cols.append(qdd[:, k] * f); names.append(f"qdd{k}*h{i}")
+    rev = [a for a, t in enumerate(jt) if t == "revolute"]
+    if len(rev) >= 2:
+        for a in range(n):
+            for b in range(a, n):
+                for i, f in enumerate(distal[1:]):
+                    cols.append(qd[:, a] * qd[:, b] * f); names.append(f"qd{a}qd{b}*h{i + 1}")
+    grav = _angle_functions(q, jt, distal_only=False)
+    for i, f in enumerate(grav):
+        cols.append(f); names.append(f"g{i}")
+    cols.append(one); names.append("const")
+    if flat_forces and np.nanmax(np.abs(sig.f_v)) > 0:
+        for i, f in enumerate([one] + grav):
+            cols.append(sig.f_v * f); names.append(f"fv*g{i}")
+        cols.append(sig.f_v * sig.x_cop); names.append("fv*xcop")
+        if np.nanmax(np.abs(sig.f_o)) > 0:
+            for i, f in enumerate([one] + grav):
+                cols.append(sig.f_o * f); names.append(f"fo*g{i}")
+    X = np.stack(cols, 1)
+    users = np.unique(sig.subject)
+    if len(users) > 1:      # every subject's own body: the base's coefficients per subject
+        X = np.concatenate([X * (sig.subject == u)[:, None] for u in users], 1)
+        names = [f"{u}:{nm}" for u in users for nm in names]
+    return X, names
+
+
+# -- candidate terms ------------------------------------------------------------------------------------------
+
+def _delayed(x: np.ndarray, sig: Signals, d: float) -> np.ndarray:
+    """x (N,) d seconds earlier within each trial (linear interpolation, clamped at the trial's start)."""
+    out = np.empty_like(x)
+    s = d / sig.dt
+    for a, T in sig.lag_of:
+        t = np.arange(T) - s
+        out[a:a + T] = np.interp(t, np.arange(T), x[a:a + T])
+    return out
+
+
+@dataclass(frozen=True)
+class Term:
+    """How one effect enters a joint's torque equation: a column linear in its parameter θ, perhaps at a
+    nonlinear parameter ν from a grid (variable projection); `fixed`: the column enters with coefficient 1 and
+    ν is the parameter (a delay). `report(θ, ν)` maps to the vocabulary's parameter; `neutral`: no effect."""
+    effect: str
+    column: object                  # (sig, j, nu, ctx) -> (N,) column
+    grid: object = None             # (sig, j, ctx) -> list of ν, None: linear
+    fixed: bool = False
+    dcol: object = None             # (sig, j, nu) -> ∂column/∂ν (fixed terms: their linearisation)
+    report: object = None           # (θ, ν) -> reported parameter
+    sided: str = "greater"          # the test of θ against its neutral value: greater | two-sided
+
+    def value(self, theta, nu):
+        return self.report(theta, nu) if self.report is not None else theta
+
+
+def _coulomb(sig, j, nu, ctx):
+    return np.tanh(sig.qd[:, j] / COULOMB_EPS)
+
+
+def _stribeck(sig, j, nu, ctx):
+    return np.exp(-(sig.qd[:, j] / nu) ** 2) * np.tanh(sig.qd[:, j] / COULOMB_EPS)
+
+
+def _stribeck_grid(sig, j, ctx):
+    # from where the fit looks (|q̇| ≥ SLIDING·ε, `JointProblem`): a smaller vs puts the term where no row is fitted
+    v = np.abs(sig.qd[sig.train, j])
+    lo = SLIDING * COULOMB_EPS
+    v = v[v >= lo]
+    if len(v) == 0:
+        return [lo, 2 * lo]
+    lo = max(np.quantile(v, 0.05), lo)
+    hi = max(np.quantile(v, 0.9), 2 * lo)
+    return list(np.geomspace(lo, hi, 10))
+
+
+def _delay_col(sig, j, nu, ctx):
+    te = sig.tau_e[:, j]
+    return te - _delayed(te, sig, nu)
+
+
+def _delay_grid(sig, j, ctx):
+    step = max(sig.dt, 0.0025)     # 2.5 ms resolution: finer than any delay these data can show
+    return list(np.arange(1, int(round(ctx.get("max_delay", 0.1) / step)) + 1) * step)
+
+
+def _strap_col(sig, j, nu, ctx):
+    """Linearised strap: the physics at q − c τ_e: −c (∂τ̂/∂q τ_e + ∂τ̂/∂q̇ τ̇_e + ∂τ̂/∂q̈ τ̈_e), ∂τ̂ from the
+    base-only fit (`ctx['base_theta']`); linear in the compliance c = 1/k."""
+    th = ctx["base_theta"][j]
+    h = 1e-4
+    cols = []
+    for name, src in (("q", sig.tau_e), ("qd", sig.tau_e_d), ("qdd", sig.tau_e_dd)):
+        kin = {"q": sig.q.copy(), "qd": sig.qd.copy(), "qdd": sig.qdd.copy()}
+        kin[name][:, j] += h
+        Xp = base_columns(kin["q"], kin["qd"], kin["qdd"], sig)[0]
+        cols.append((Xp @ th - ctx["base_raw"] @ th) / h * src[:, j])
+    return -np.sum(cols, 0)
+
+
+TERMS: dict[str, Term] = {t.effect: t for t in [
+    Term("viscous_damping", lambda sig, j, nu, ctx: sig.qd[:, j]),
+    Term("coulomb_friction", _coulomb),
+    Term("stribeck_friction", _stribeck, grid=_stribeck_grid),
+    Term("torque_gain", lambda sig, j, nu, ctx: sig.tau_e[:, j], report=lambda th, nu: 1.0 / (1.0 - th),
+         sided="two-sided"),
+    Term("actuation_delay", _delay_col, grid=_delay_grid, fixed=True,
+         dcol=lambda sig, j, nu: _delayed(sig.tau_e_d[:, j], sig, nu)),
+    Term("strap_compliance", _strap_col, report=lambda th, nu: 1.0 / th if th > 0 else math.inf),
+]}
+
+
+# -- weighted least squares with HAC intervals ----------------------------------------------------------------
+
+def hac_lags(r: np.ndarray) -> int:
+    """Newey-West lags: the block length of the residual's ACF (`stats.block_length`), at least 1."""
+    return int(max(1, min(stats.block_length(r), 500)))
+
+
+def wls(X, y, w):
+    sw = np.sqrt(w)
+    theta, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
+    return theta
+
+
+def hac_subset(X, y, w, subset: list[int], lags: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Coefficients and HAC SEs of the columns `subset` of a weighted LS fit, by Frisch-Waugh-Lovell: the
+    other columns partialled out, the sandwich of the small regression is that block of the full one."""
+    sw = np.sqrt(w)
+    Xw, yw = X * sw[:, None], y * sw
+    rest = [i for i in range(X.shape[1]) if i not in subset]
+    A, Z = Xw[:, subset], yw
+    if rest:
+        Q, _ = np.linalg.qr(Xw[:, rest])
+        A = A - Q @ (Q.T @ A)
+        Z = Z - Q @ (Q.T @ Z)
+    ols = sm.OLS(Z, A).fit()
+    L = hac_lags(ols.resid) if lags is None else lags
+    r = ols.get_robustcov_results(cov_type="HAC", maxlags=L, use_correction=False)
+    # the small-sample factor N/(N − p) of the full regression (p: all its columns, the partialled ones too)
+    N = len(Z)
+    return np.asarray(r.params), np.asarray(r.bse) * math.sqrt(N / max(N - X.shape[1], 1)), L
+
+
+@dataclass
+class Fit:
+    """One fitted model of a joint equation: the base plus `terms` [(effect, ν)]."""
+    terms: list
+    theta: np.ndarray
+    names: list
+    nu: dict
+    pred: np.ndarray            # (N,) prediction on every row
+    se: dict = field(default_factory=dict)      # effect -> SE of its parameter (θ, or ν for fixed terms)
+    est: dict = field(default_factory=dict)     # effect -> θ (or ν for fixed terms)
+    lags: int = 0
+
+
+class JointProblem:
+    """Weighted LS of joint j's torque equation on the training rows; the base regressor built once."""
+
+    def __init__(self, sig: Signals, j: int, X_base: np.ndarray, base_names: list, ctx: dict):
+        self.sig, self.j, self.ctx = sig, j, ctx
+        self.Xb, self.base_names = X_base, base_names
+        self.y = sig.tau[:, j]
+        rows = sig.ok & np.isfinite(X_base).all(1)
+        # fitted where the friction law's smoothing no longer matters (|q̇| ≥ 3ε, tanh(3) = 0.995): near rest the
+        # data's own law (stiction, pre-sliding) is unknown and the model's tanh(q̇/ε) is a numerical choice
+        moving = np.abs(np.nan_to_num(sig.qd[:, j])) >= SLIDING * COULOMB_EPS
+        self.train, self.held = rows & sig.train & moving, rows & sig.held
+        self.w = np.ones(len(self.y))
+        self._Q = None
+        self._cols: dict = {}
+
+    def col(self, effect: str, nu):
+        key = (effect, None if nu is None else float(nu))
+        if key not in self._cols:
+            self._cols[key] = np.nan_to_num(self.sig.lp(TERMS[effect].column(self.sig, self.j, nu, self.ctx)))
+        return self._cols[key]
+
+    def _design(self, terms: list, nu: dict):
+        X, names, offset = [self.Xb], list(self.base_names), np.zeros(len(self.y))
+        for eff in terms:
+            c = self.col(eff, nu.get(eff))
+            if TERMS[eff].fixed:
+                offset += c
+            else:
+                X.append(c[:, None]); names.append(eff)
+        return np.concatenate(X, 1), names, offset
+
+    def _partial(self, v: np.ndarray) -> np.ndarray:
+        """v (training rows, weighted) less its projection on the weighted base (one QR per weighting)."""
+        if self._Q is None:
+            sw = np.sqrt(self.w[self.train])
+            self._Q = np.linalg.qr(self.Xb[self.train] * sw[:, None])[0]
+        return v - self._Q @ (self._Q.T @ v)
+
+    def sse(self, terms: list, nu: dict) -> float:
+        """Weighted training SSE of the base plus `terms` at ν (the base partialled out: a small LS)."""
+        tr = self.train
+        sw = np.sqrt(self.w[tr])
+        off = np.zeros(int(tr.sum()))
+        cols = []
+        for eff in terms:
+            c = self.col(eff, nu.get(eff))[tr]
+            if TERMS[eff].fixed:
+                off += c
+            else:
+                cols.append(c)
+        rz = self._partial((self.y[tr] - off) * sw)
+        if cols:
+            Cz = self._partial(np.stack(cols, 1) * sw[:, None])
+            rz = rz - Cz @ np.linalg.lstsq(Cz, rz, rcond=None)[0]
+        return float(rz @ rz)
+
+    def fit(self, terms: list, intervals: bool = True) -> Fit:
+        """Fit the base plus `terms`, ν of nonlinear terms by grid (coordinate-wise, two passes)."""
+        nu = {e: None for e in terms}
+        grids = {e: TERMS[e].grid(self.sig, self.j, self.ctx) for e in terms if TERMS[e].grid is not None}
+        for e in grids:
+            nu[e] = grids[e][len(grids[e]) // 2]
+        for _ in range(2 if len(grids) > 1 else 1):
+            for e, g in grids.items():
+                sse = [self.sse(terms, dict(nu, **{e: v})) for v in g]
+                nu[e] = g[int(np.argmin(sse))]
+        X, names, off = self._design(terms, nu)
+        tr = self.train
+        th = wls(X[tr], (self.y - off)[tr], self.w[tr])
+        f = Fit(terms=list(terms), theta=th, names=names, nu=nu, pred=X @ th + off)
+        if intervals and terms:
+            self._intervals(f, X, off)
+        return f
+
+    def _intervals(self, f: Fit, X, off):
+        """HAC SE of every term's parameter; fixed terms (a delay) through their linearisation in ν."""
+        tr = self.train
+        extra, which = [], []
+        for e in f.terms:
+            if TERMS[e].fixed:
+                extra.append(np.nan_to_num(self.sig.lp(TERMS[e].dcol(self.sig, self.j, f.nu[e])))[:, None])
+                which.append(e)
+        Xa = np.concatenate([X] + extra, 1) if extra else X
+        r = self.y - f.pred
+        lin = [f.names.index(e) for e in f.terms if not TERMS[e].fixed]
+        sub = lin + list(range(X.shape[1], Xa.shape[1]))
+        # the linearised model's residual regression: a Gauss-Newton step from the fit (zero for linear terms)
+        coef, se, L = hac_subset(Xa[tr], r[tr] + (Xa[tr][:, lin] @ f.theta[lin] if lin else 0), self.w[tr], sub)
+        for k, e in enumerate([f.names[i] for i in lin] + which):
+            if TERMS[e].fixed:
+                f.est[e], f.se[e] = float(f.nu[e]), float(se[k])
+            else:
+                f.est[e], f.se[e] = float(coef[k]), float(se[k])
+        f.lags = L
+
+    def held_sq(self, f: Fit, rows: np.ndarray | None = None) -> np.ndarray:
+        """Squared error against the recorded (unfiltered) τ, mass-normalised, on the held-out rows (or `rows`:
+        NaN where the filtered signals are not usable)."""
+        sel = self.held if rows is None else rows
+        r = (self.sig.tau_raw[sel, self.j] - f.pred[sel]) / self.sig.mass[sel]
+        return r * r
+
+    def set_weights(self, f: Fit):
+        """Weights per trial: the inverse mean squared training residual of `f` there (feasible WLS)."""
+        r2 = (self.y - f.pred) ** 2
+        w = np.ones(len(self.y))
+        for t in np.unique(self.sig.trial):
+            m = (self.sig.trial == t) & self.train
+            if m.any():
+                w[self.sig.trial == t] = 1.0 / max(float(np.mean(r2[m])), 1e-12)
+        self.w = w / np.median(w[self.train])
+        self._Q = None
+
+
+def p_value(effect: str, est: float, se: float) -> float:
+    """One-sided (dissipation, delay, compliance: only > 0 is physical) or two-sided test against no effect."""
+    if not (se > 0 and math.isfinite(se)):
+        return 1.0
+    z = est / se
+    if TERMS[effect].sided == "two-sided":
+        return float(2 * sps.norm.sf(abs(z)))
+    return float(sps.norm.sf(z))

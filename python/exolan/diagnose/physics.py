@@ -1,0 +1,345 @@
+"""The physics-first decision: forward selection of candidate terms on the parametric base (`ident`), one
+family-wise significance budget, a held-out check, rivals, and the learned base's cross-check.
+
+Rule, in plain words (the report states it):
+
+1. Every candidate the data can test (effect x joint; exo-driven ones only with a recorded exo torque) is
+   one member of the family; m is their number.
+2. Forward selection: at step r every remaining candidate is fitted with the base and the terms accepted so far
+   (weighted LS on the training segments, `ident.JointProblem`), and tested against "no effect" with its HAC
+   interval (one-sided where only one sign is physical; a Stribeck friction's p is multiplied by its grid's size,
+   since its Stribeck velocity is chosen on the data). The smallest p is compared with Holm's threshold
+   α/(m − r), α = 5 %: the family-wise level of every accept decision together is α. Where it fails, selection
+   stops.
+3. The held-out check can only remove a term: the model with it must beat the model without it on the held-out
+   segments (paired squared errors, block-bootstrap 95 % CI above 0).
+4. Rivals (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap): an accepted term whose rival, put in its
+   place, is significant there (same threshold) and not worse on held-out data (CI of the difference reaching
+   0) is `ambiguous` with it — unless one reduces to the other (Stribeck to Coulomb): the simpler is taken.
+5. Cross-check: the same terms fitted on the learned base's residual (a constant and the terms only). Where
+   the two intervals do not overlap, the finding reports both and its interval spans both: the data size the
+   effect only up to that disagreement. Where the learned base's residual shows no effect at all, the term is
+   `ambiguous` (the parametric base may be what misses it).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..runio import jsonable
+from . import ident, stats
+from .candidates import LIBRARY, NESTS, rivals
+
+Z95 = 1.959963984540054
+
+
+@dataclass
+class TermEstimate:
+    """One (effect, joint) as the parametric identification sizes it."""
+    effect: str
+    joint: str
+    estimate: float
+    ci: list
+    theta: float                # the linear coefficient (ν for a fixed term)
+    se: float
+    p: float
+    nu: float | None = None     # the nonlinear parameter (Stribeck velocity)
+
+    def to_json(self) -> dict:
+        return jsonable(self.__dict__)
+
+
+@dataclass
+class PhysicsResult:
+    """The physics-first identification: accepted terms per joint, every candidate's test, the base."""
+    alpha: float
+    family: int
+    accepted: list = field(default_factory=list)          # [(effect, joint index)]
+    estimates: dict = field(default_factory=dict)         # (effect, joint index) -> TermEstimate (final model)
+    tests: list = field(default_factory=list)             # every test made, in order
+    status: dict = field(default_factory=dict)            # (effect, j) -> (status, reason)
+    base: dict = field(default_factory=dict)              # joint name -> {name: (value, se)} for small bases
+    heldout: dict = field(default_factory=dict)           # joint name -> rms, r2 (against the recorded τ)
+    e_held: np.ndarray | None = None                      # per held row of the flat: squared error (mass-norm.)
+    held_rows: np.ndarray | None = None
+    cross: dict = field(default_factory=dict)             # (effect, j) -> TermEstimate on the learned residual
+    term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
+    seconds: float = 0.0
+    cutoff_hz: float = 0.0
+
+    def summary(self, joints) -> str:
+        acc = ", ".join(f"{e}:{joints[j]} {self.estimates[(e, j)].estimate:.4g} "
+                        f"[{self.estimates[(e, j)].ci[0]:.4g}, {self.estimates[(e, j)].ci[1]:.4g}]"
+                        for e, j in self.accepted) or "nothing"
+        fit = "; ".join(f"{k}: held-out rms {v['rms']:.3g}, R² {v['r2']:.4f}" for k, v in self.heldout.items())
+        return (f"parametric base + terms ({self.family} candidates, Holm at {100 * self.alpha:g} %): {acc}; {fit} "
+                f"({self.seconds:.1f} s)")
+
+    def to_json(self, joints) -> dict:
+        return jsonable(dict(
+            method=("parametric rigid-body base + candidate terms, weighted LS on the training segments, HAC "
+                    f"(Newey-West) intervals; zero-phase low-pass {self.cutoff_hz:g} Hz and central differences; "
+                    f"forward selection with Holm's thresholds α/(m − r), α = {self.alpha}, m = {self.family}"),
+            accepted=[f"{e}:{joints[j]}" for e, j in self.accepted],
+            estimates={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.estimates.items()},
+            cross_check={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.cross.items()},
+            tests=self.tests, base=self.base, heldout=self.heldout, seconds=self.seconds))
+
+
+def _estimate(prob: ident.JointProblem, f: ident.Fit, eff: str, joint: str) -> TermEstimate:
+    t = ident.TERMS[eff]
+    th, se = f.est[eff], f.se[eff]
+    lo, hi = th - Z95 * se, th + Z95 * se
+    if t.fixed:
+        est, ci = th, [max(lo, 0.0), hi]
+    else:
+        ends = sorted([t.value(lo, f.nu.get(eff)), t.value(hi, f.nu.get(eff))])
+        est = t.value(th, f.nu.get(eff))
+        if eff == "strap_compliance":        # k = 1/c: an interval of c reaching 0 reaches k = ∞
+            ends = [1.0 / hi if hi > 0 else math.inf, 1.0 / lo if lo > 0 else math.inf]
+        ci = ends
+    nu = f.nu.get(eff)
+    return TermEstimate(eff, joint, float(est), [float(ci[0]), float(ci[1])], float(th), float(se),
+                        ident.p_value(eff, th if not t.fixed else th, se), None if nu is None or t.fixed else float(nu))
+
+
+def _p(prob: ident.JointProblem, f: ident.Fit, eff: str) -> float:
+    """The test's p; 1 where the nonlinear parameter ends at an edge of its grid (not identified: the optimum
+    lies at or beyond what the grid can say, e.g. a Stribeck velocity at the Coulomb term's own smoothing ε)."""
+    p = ident.p_value(eff, f.est[eff], f.se[eff])
+    g = ident.TERMS[eff].grid
+    if g is not None:
+        grid = g(prob.sig, prob.j, prob.ctx)
+        if f.nu[eff] in (grid[0], grid[-1]):
+            return 1.0
+        if not ident.TERMS[eff].fixed:
+            p = min(1.0, p * len(grid))     # the nonlinear parameter chosen on the data (Bonferroni over the grid)
+    return p
+
+
+def _edge_text(prob: ident.JointProblem, f: ident.Fit, eff: str) -> str | None:
+    """Why a nonlinear parameter at an edge of its grid is not identified, or None."""
+    g = ident.TERMS[eff].grid
+    if g is None:
+        return None
+    grid = g(prob.sig, prob.j, prob.ctx)
+    if f.nu[eff] == grid[0]:
+        return (f"not identified: its nonlinear parameter ends at the smallest value searched ({grid[0]:.3g})"
+                + (", the Coulomb term's own smoothing ε" if eff == "stribeck_friction" else ""))
+    if f.nu[eff] == grid[-1]:
+        return f"not identified: its nonlinear parameter ends at the largest value searched ({grid[-1]:.3g})"
+    return None
+
+
+def _held_gain(e_without: np.ndarray, e_with: np.ndarray, n_boot: int, seed: int = 0) -> dict:
+    b = stats.bootstrap_mean(e_without - e_with, n_boot=n_boot, seed=seed)
+    return dict(gain=float(b["mean"]), ci=[float(b["ci"][0]), float(b["ci"][1])])
+
+
+def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
+          max_delay: float = 0.1) -> PhysicsResult:
+    """The parametric base fitted per joint (weighted) and the family of candidates; no selection yet."""
+    t0 = time.time()
+    sig = ident.signals(flat, cutoff_hz)
+    X_raw, names = ident.base_columns(sig.q, sig.qd, sig.qdd, sig)
+    Xb = sig.lp(X_raw)
+    ctx = dict(max_delay=max_delay, base_theta={}, base_raw=X_raw)
+    probs, cur = {}, {}
+    for j in joint_ids:
+        prob = ident.JointProblem(sig, j, Xb, names, ctx)
+        f0 = prob.fit([], intervals=False)
+        prob.set_weights(f0)
+        f0 = prob.fit([], intervals=False)
+        ctx["base_theta"][j] = f0.theta
+        probs[j], cur[j] = prob, f0
+    cands = [(e, j) for e in effects if e in ident.TERMS for j in joint_ids
+             if flat.has_exo or not LIBRARY[e].needs_exo]
+    res = PhysicsResult(alpha=alpha, family=len(cands), cutoff_hz=sig.cutoff)
+    res._probs, res._fits, res._cands, res._joint_ids = probs, cur, cands, list(joint_ids)
+    res.seconds = time.time() - t0
+    return res
+
+
+def saturated_held(res: PhysicsResult, flat) -> np.ndarray:
+    """Per held-out row of the flat: the squared error (mass-normalised, summed over the joints) of the parametric
+    base with every linear candidate term at once — the most the parametric family explains without a grid."""
+    held_idx = flat.index("held").numpy()
+    e = np.zeros(len(held_idx))
+    for j, prob in res._probs.items():
+        lin = [x for x, jj in res._cands if jj == j and ident.TERMS[x].grid is None]
+        e += prob.held_sq(prob.fit(lin, intervals=False), held_idx)
+    return e
+
+
+def single_term(res: PhysicsResult, effect: str, j: int, joint: str) -> TermEstimate | None:
+    """One term alone with the parametric base (the learned path's cross-check of its own findings)."""
+    if effect not in ident.TERMS or (effect, j) not in res._cands:
+        return None
+    prob = res._probs[j]
+    return _estimate(prob, prob.fit([effect]), effect, joint)
+
+
+def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
+             max_delay: float = 0.1, n_boot: int = 400, log=None) -> PhysicsResult:
+    """Physics first (module docstring): the parametric base and forward selection of the candidate terms."""
+    return select(setup(flat, effects, joint_ids, alpha, cutoff_hz, max_delay), flat, n_boot, log)
+
+
+def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResult:
+    """Forward selection under Holm's thresholds, rivals, and the final joint fits (module docstring)."""
+    t0 = time.time() - res.seconds
+    log = log or (lambda msg: None)
+    probs, cur, cands, joint_ids, alpha = res._probs, res._fits, res._cands, res._joint_ids, res.alpha
+    pool, r = list(cands), 0
+    accepted = {j: [] for j in joint_ids}
+    while pool:
+        tried = []
+        for e, j in pool:
+            log(f"physics step {r + 1}: testing {e} on {flat.joints[j]}")
+            f = probs[j].fit(accepted[j] + [e])
+            tried.append((_p(probs[j], f, e), e, j, f))
+        tried.sort(key=lambda x: x[0])
+        p, e, j, f = tried[0]
+        thr = alpha / (len(cands) - r)
+        gain = _held_gain(probs[j].held_sq(cur[j]), probs[j].held_sq(f), n_boot)
+        te = _estimate(probs[j], f, e, flat.joints[j])
+        rec = dict(step=r + 1, effect=e, joint=flat.joints[j], p=p, threshold=thr, estimate=te.estimate, ci=te.ci,
+                   heldout_gain=gain["gain"], heldout_gain_ci=gain["ci"])
+        res.tests.append(rec)
+        r += 1
+        if p > thr:
+            for pe, ee, jj, ff in tried:
+                res.status[(ee, jj)] = ("rejected", _edge_text(probs[jj], ff, ee) or (
+                    f"not significant (p {pe:.3g} > Holm's threshold {thr:.3g} at step {r} of {len(cands)})"))
+            break
+        pool.remove((e, j))
+        if gain["ci"][0] <= 0:
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
+                                              f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
+            continue
+        accepted[j].append(e)
+        cur[j] = f
+        res.status[(e, j)] = ("accepted", f"p {p:.3g} ≤ Holm's threshold {thr:.3g}; held-out gain {gain['gain']:.3g} "
+                                          f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
+        log(f"physics: {e} on {flat.joints[j]} accepted at {te.estimate:.4g} [{te.ci[0]:.4g}, {te.ci[1]:.4g}] "
+            f"(p {p:.2g}, step {r})")
+    _rivals(res, probs, cur, accepted, flat, alpha / max(len(cands), 1), n_boot)
+    # the final joint fits: every accepted term's estimate and interval, its own held-out share, the base's size
+    held_idx = flat.index("held").numpy()
+    res.held_rows = held_idx
+    res.e_held = np.zeros(len(held_idx))
+    for j in joint_ids:
+        prob, f = probs[j], probs[j].fit(accepted[j])
+        cur[j] = f
+        for e in accepted[j]:
+            res.estimates[(e, j)] = _estimate(prob, f, e, flat.joints[j])
+            res.accepted.append((e, j))
+            without = probs[j].fit([x for x in accepted[j] if x != e], intervals=False)
+            res.term_gain[(e, j)] = _held_gain(prob.held_sq(without), prob.held_sq(f), n_boot)
+        res.base[flat.joints[j]] = _base_sizes(prob, f)
+        res.e_held += prob.held_sq(f, held_idx)
+        sel = prob.held
+        y = prob.sig.tau_raw[sel, j]
+        mse = float(np.mean((y - f.pred[sel]) ** 2))
+        res.heldout[flat.joints[j]] = dict(rms=math.sqrt(mse), r2=float(1 - mse / np.var(y)),
+                                           rms_filtered=float(np.sqrt(np.mean((prob.y - f.pred)[sel] ** 2))))
+    res.seconds = time.time() - t0
+    res._probs, res._fits = probs, cur      # for the cross-check and the extended model
+    return res
+
+
+def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:
+    """The base's coefficients with HAC SEs where the base is small (a drive's mass and offset); else values."""
+    nb = len(prob.base_names)
+    if nb > 8:
+        return {"columns": nb}
+    X, names, off = prob._design(f.terms, f.nu)
+    tr = prob.train
+    coef, se, _ = ident.hac_subset(X[tr], (prob.y - off)[tr], prob.w[tr], list(range(nb)))
+    return {nm: dict(value=float(c), se=float(s)) for nm, c, s in zip(names[:nb], coef, se)}
+
+
+def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
+    """Rule 4: an accepted term and a rival that explains the held-out data as well are ambiguous (or the
+    simpler of a nested pair is taken)."""
+    for j, terms in accepted.items():
+        for e in list(terms):
+            for rv in rivals(e):
+                if rv not in ident.TERMS or rv in terms or (LIBRARY[rv].needs_exo and not flat.has_exo):
+                    continue
+                alt_terms = [x if x != e else rv for x in terms]
+                alt = probs[j].fit(alt_terms)
+                if _p(probs[j], alt, rv) > thr:
+                    continue
+                d = _held_gain(probs[j].held_sq(alt), probs[j].held_sq(cur[j]), n_boot)    # > 0: e is better
+                if d["ci"][0] > 0:
+                    continue
+                if NESTS.get(rv, ("",))[0] == e:           # the rival reduces to e: e is the simpler, kept
+                    res.status[(rv, j)] = ("rejected", f"reduces to {e} ({NESTS[rv][1]}) and held-out data cannot "
+                                                       f"separate them: the simpler term is taken")
+                    continue
+                if NESTS.get(e, ("",))[0] == rv:           # e reduces to the rival: the rival replaces it
+                    terms[terms.index(e)] = rv
+                    cur[j] = alt
+                    res.status[(rv, j)] = ("accepted", f"taken for {e}, which reduces to it ({NESTS[e][1]}) and "
+                                                       f"held-out data cannot separate them")
+                    res.status[(e, j)] = ("rejected", f"reduces to {rv}: the simpler term is taken")
+                    break
+                terms.remove(e)
+                cur[j] = probs[j].fit(terms)
+                why = (f"held-out data cannot separate {e} and {rv} (advantage {d['gain']:.3g} "
+                       f"[{d['ci'][0]:.3g}, {d['ci'][1]:.3g}])")
+                res.status[(e, j)] = ("ambiguous", why)
+                res.status[(rv, j)] = ("ambiguous", why)
+                break
+
+
+def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=None) -> None:
+    """Rule 5: the candidate terms fitted on the learned base's residual (training rows, the same low-pass),
+    with a constant only: `res.cross`; a disagreement widens the finding's interval or makes it ambiguous."""
+    probs = res._probs
+    for j in joint_ids:
+        prob = probs[j]
+        terms = [e for e, jj in res.accepted if jj == j]
+        if not terms:
+            continue
+        sig = prob.sig
+        r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
+        sig_r = ident.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
+        sig_r.tau[:, j] = r
+        one = np.ones((len(r), 1))
+        p = ident.JointProblem(sig_r, j, one, ["const"], prob.ctx)
+        p.w = prob.w
+        f = p.fit(terms)
+        for e in terms:
+            res.cross[(e, j)] = _estimate(p, f, e, flat.joints[j])
+            if log:
+                c, m = res.cross[(e, j)], res.estimates[(e, j)]
+                log(f"cross-check {e} on {flat.joints[j]}: parametric {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
+                    f"on the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]")
+
+
+def verdicts(res: PhysicsResult) -> dict:
+    """(effect, j) -> dict(status, reason, estimate, ci, note): rules 2-5 together."""
+    out = {}
+    for key, (status, reason) in res.status.items():
+        v = dict(status=status, reason=reason)
+        if key in res.estimates and status == "accepted":
+            m = res.estimates[key]
+            v.update(estimate=m.estimate, ci=list(m.ci))
+            c = res.cross.get(key)
+            if c is not None:
+                if c.p > res.alpha:
+                    v.update(status="ambiguous", reason=reason + f"; but the learned base's residual shows no such term "
+                             f"({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], p {c.p:.2g}): the parametric base may "
+                             "be what misses it")
+                elif c.ci[1] < m.ci[0] or c.ci[0] > m.ci[1]:
+                    v["ci"] = [min(m.ci[0], c.ci[0]), max(m.ci[1], c.ci[1])]
+                    v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
+                                 f"the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]; the "
+                                 "interval spans both")
+        out[key] = v
+    return out
