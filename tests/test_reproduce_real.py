@@ -21,7 +21,11 @@ def test_micro_sweep_with_the_real_models(tmp_path, with_real):
     assert set(res["intention"]) == {"exolan", "mlp-tcn"}
     for m in res["intention"].values():
         assert float(m["seen"]["mse"][0]) > 0 and float(m["unseen"]["mse"][0]) > 0
-    assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms"}
+    refs = {"reference: recorded", "reference: true inputs, recorded τ", "reference: true inputs"}
+    assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms"} | refs
+    fd = res["forward_dynamics"]
+    # the world's own leg with every true input is the floor of the references
+    assert float(fd["reference: true inputs"]["mean_std"]["qd20"][0]) < float(fd["reference: recorded"]["mean_std"]["qd20"][0])
     assert "q20" in res["forward_dynamics"]["w_fd"]["mean_std"]
     assert 0 <= float(res["task_identification"]["sample_split"]["exolan"]["accuracy"][0]) <= 1
     if real is not None:
@@ -38,7 +42,11 @@ def test_small_scale_study(tmp_path):
     R.reproduce("small", tmp_path / "a", workers=2)
     res = json.loads((tmp_path / "a" / "results.json").read_text())
     assert len(res["intention"]) == 16
-    assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms"}
+    refs = {"reference: recorded", "reference: true inputs, recorded τ", "reference: true inputs"}
+    assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms"} | refs
+    fd = res["forward_dynamics"]
+    # the world's own leg with every true input is the floor of the references
+    assert float(fd["reference: true inputs"]["mean_std"]["qd20"][0]) < float(fd["reference: recorded"]["mean_std"]["qd20"][0])
     assert res["task_identification"]["sample_split"]["exolan"]
     for f in res["figures"].values():
         assert (tmp_path / "a" / f).stat().st_size > 10_000

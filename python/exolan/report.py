@@ -234,7 +234,7 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
     # --- human intention estimation
     methods = {}
     for arch in scale.architectures:
-        for lim in sorted(set(scale.lims) | ({False} if arch == "exolan" else set()), reverse=True):
+        for lim in sorted(set(scale.lims) | ({False} if arch in scale.nolim_also else set()), reverse=True):
             rr = runs_of("world", arch, lim)
             if rr:
                 methods[method_name(arch, lim)] = {"arch": arch, "lim": lim, "label": method_label(arch, lim),

@@ -51,6 +51,7 @@ class Scale:
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)
     architectures: tuple[str, ...] = ARCHITECTURES
     lims: tuple[bool, ...] = (True, False)
+    nolim_also: tuple[str, ...] = ()  # architectures also trained without LIM where `lims` is (True,)
     batch_size: int = 8192           # paper: 8192; smaller worlds use smaller batches to get more updates
     fd_study: bool = True
     w_fd: float = 0.01
@@ -91,6 +92,7 @@ SCALES: dict[str, Scale] = {
     # sized to finish within 2 hours on 2 cores.
     "converge": Scale("converge", users=21, tasks="all", seconds=8.0, epochs=150, seeds=(0, 1, 2),
                       architectures=("exolan", "delan-lstm", "delan", "mlp-tcn", "mlp", "tcn"), lims=(True,),
+                      nolim_also=("exolan",),
                       batch_size=2048, ms_norm="increment", patience=10, val_users=2, rollout_stride=10,
                       taskid_per_trial=500, taskid_epochs=200, real_epochs=300, real_seeds=(0, 1, 2)),
     "medium": Scale("medium", users=21, tasks="all", seconds=6.0, epochs=30, seeds=(0, 1, 2), batch_size=2048,
@@ -142,8 +144,9 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
         for arch in scale.architectures:
             for lim in scale.lims:
                 specs.append(run(arch, lim))
-        if "exolan" in scale.architectures and False not in scale.lims:
-            specs.append(run("exolan", False))         # LIM's effect on ExoLaN is always measured
+        for arch in scale.nolim_also:
+            if False not in scale.lims:
+                specs.append(run(arch, False))
         if scale.fd_study:
             specs.append(run("exolan", True, scale.w_fd))
             specs.append(run("exolan", True, scale.w_fd, scale.w_ms, scale.ms_norm))
