@@ -196,12 +196,6 @@ class Lagrangian(nn.Module):
         du2 = torch.cat([torch.sigmoid(d).unsqueeze(1) * du[:, :, :n], du[:, :, n:]], dim=2)
         return Lm, (du2 @ S).view(N, du.shape[1], n, n)
 
-    def _cholesky(self, x: torch.Tensor, dphi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """L (N, n, n) lower triangular and dL/dq (N, n, n, n), last index = q_k."""
-        u, du = mlp_forward_jac(self.L, x, dphi)         # (N, m), (N, m, n)
-        Lm, dL = self._factor(u, du.transpose(1, 2))
-        return Lm, dL.permute(0, 2, 3, 1)
-
     def _flatten(self, *xs: torch.Tensor) -> tuple[tuple[int, ...], list[torch.Tensor]]:
         lead = xs[0].shape[:-1]
         N = lead.numel()

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import hashlib
 import importlib
 import io
@@ -255,16 +254,10 @@ def _fd_metrics(model, items, dtype, scale: Scale) -> list[dict]:
     """Per trial: q̈ MSE on every valid sample, and open-loop rollout errors (semi-implicit Euler with the
     recorded τ, z and f_v, DESIGN section 5) from start points every `rollout_stride` samples."""
     def forward(q, qd, tau, z, fv, cop_x, owner, t):
-        return _forward(model, _t(q, dtype), _t(qd, dtype), _t(tau, dtype), _t(z, dtype), _t(fv, dtype)).double().numpy()
+        args = (_t(a, dtype) for a in (q, qd, tau, z, fv))
+        return _forward(model, *args).double().numpy()
 
     return rollout_metrics(forward, [(split, tr, z.double().numpy()) for split, tr, z in items], scale)
-
-
-@functools.lru_cache(maxsize=None)
-def _true_trial(users: int, seed: int, seconds, subject: str, task: str, side: str):
-    from exolan.world.reference import TrueTrial
-
-    return TrueTrial(users, seed, seconds, subject, task, side)   # re-simulated once for every mode
 
 
 def reference_fd_rows(items, scale: Scale, mode: str) -> list[dict]:
@@ -275,7 +268,7 @@ def reference_fd_rows(items, scale: Scale, mode: str) -> list[dict]:
         legs = reference.true_legs(scale.users, scale.world_seed)
         params = [legs[tr.subject] for _, tr, _ in items]
     else:
-        truths = [_true_trial(scale.users, scale.world_seed, scale.seconds, tr.subject, tr.task, tr.side)
+        truths = [reference.TrueTrial(scale.users, scale.world_seed, scale.seconds, tr.subject, tr.task, tr.side)
                   for _, tr, _ in items]
 
     def forward(q, qd, tau, z, fv, cop_x, owner, t):
@@ -291,8 +284,8 @@ def reference_fd_rows(items, scale: Scale, mode: str) -> list[dict]:
 
 def rollout_metrics(forward, items, scale: Scale) -> list[dict]:
     """q̈ MSE and open-loop rollout errors of any forward dynamics `forward(q, qd, tau, z, f_v, cop_x, owner, t)`
-    -> q̈ (numpy rows; `owner` = each row's item index, `t` its sample index in that trial). The rollouts of all trials run as one batch (a few
-    forward-dynamics calls instead of thousands)."""
+    -> q̈ (numpy rows; `owner` = each row's item index, `t` its sample index in that trial). The rollouts of all
+    trials run as one batch (a few forward-dynamics calls instead of thousands)."""
     H = max(scale.horizons)
     rows, Q0, QD0, TAU, Z, FV, CX, QT, QDT, owner, T0 = [], [], [], [], [], [], [], [], [], [], []
     for j, (split, tr, z) in enumerate(items):

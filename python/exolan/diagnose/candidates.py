@@ -97,3 +97,11 @@ def library_table() -> str:
     for c in LIBRARY.values():
         rows.append(f"| `{c.effect}` | {c.meaning} | {c.sign} | {c.unit_revolute} / {c.unit_prismatic} | {c.kind} |")
     return "\n".join(rows)
+
+
+def blank_entry(effect: str, j: int, flat, subjects: list) -> dict:
+    """A candidate's report entry before any test: effect, joint, the users it concerns, unit and kind (the same
+    keys on the physics-first and the learned path)."""
+    c = LIBRARY[effect]
+    return dict(effect=effect, joint=flat.joints[j], subjects=subjects, unit=c.unit(flat.joint_types[j]), kind=c.kind,
+                estimate=None, ci=None, heldout_gain=None)

@@ -15,7 +15,7 @@ import torch
 
 from ..runio import jsonable
 from . import physics, stats
-from .candidates import LIBRARY
+from .candidates import LIBRARY, blank_entry
 from .fit import extend, predict
 
 RULE = ("Physics first: every candidate term was fitted jointly with a parametric rigid-body base (inertia, "
@@ -57,8 +57,7 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
         c = LIBRARY[effect]
         for j in joint_ids:
             name = flat.joints[j]
-            e = dict(effect=effect, joint=name, subjects=subjects, unit=c.unit(flat.joint_types[j]), kind=c.kind,
-                     estimate=None, ci=None, heldout_gain=None)
+            e = blank_entry(effect, j, flat, subjects)
             out.append(e)
             key = (effect, j)
             if c.needs_exo and not flat.has_exo:

@@ -153,7 +153,7 @@ from ..extensions import SIZEABLE, ExtendedModel
 from ..runio import jsonable
 from . import residuals as R
 from . import stats
-from .candidates import FITTED, LIBRARY, NESTS, nested_choice, rivals
+from .candidates import FITTED, LIBRARY, NESTS, blank_entry, nested_choice, rivals
 from .screen import features, screen
 from .fit import (DTYPE, Flat, _base_of, _forward, exo_copy, exo_own, extend, make_base, misfit_weights, predict,
                   prepare, sample_groups, sq_errors, train)
@@ -1766,8 +1766,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None) 
         c = LIBRARY[effect]
         for j in joint_ids:
             name = flat.joints[j]
-            entry = dict(effect=effect, joint=name, subjects=subjects, unit=c.unit(flat.joint_types[j]), kind=c.kind,
-                         estimate=None, ci=None, heldout_gain=None)
+            entry = blank_entry(effect, j, flat, subjects)
             results.append(entry)
             if c.needs_exo and not flat.has_exo:
                 entry.update(status="rejected", reason="no exoskeleton torque recorded: not testable")

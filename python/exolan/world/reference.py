@@ -14,6 +14,8 @@ recorded state, semi-implicit Euler, compared with the recorded state) under thr
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from . import dynamics as dyn
@@ -39,15 +41,21 @@ def recorded_forward(p: LegParams, q, qd, tau, f_v, cop_x) -> np.ndarray:
     return dyn.forward_dynamics(p, q, qd, tau + tau_c)
 
 
+@functools.lru_cache(maxsize=None)
+def _truth(users: int, seed: int, seconds: float | None, subject: str, task: str) -> dict:
+    """Both legs' truth of one trial, re-simulated once (for either side and every reference mode)."""
+    from . import _rng, simulate_trial
+
+    people = make_users(users, _rng(seed, 0))
+    si = [u.name for u in people].index(subject)
+    return simulate_trial(people[si], task, seconds, seed, (), True, subject_index=si)[2]
+
+
 class TrueTrial:
     """One recorded trial's true inputs, re-simulated with the seeds that made it (same arrays as recorded)."""
 
     def __init__(self, users: int, seed: int, seconds: float | None, subject: str, task: str, side: str):
-        from . import _rng, simulate_trial
-
-        people = make_users(users, _rng(seed, 0))
-        si = [u.name for u in people].index(subject)
-        _, _, truth = simulate_trial(people[si], task, seconds, seed, (), True, subject_index=si)
+        truth = _truth(users, seed, seconds, subject, task)
         s = 0 if side == "l" else 1
         self.p = truth["world"].p
         self.tilt, self.tilt_d, self.tilt_dd = truth["tilt"], truth["tilt_d"], truth["tilt_dd"]
