@@ -249,10 +249,16 @@ def test_tiny_sweep_writes_a_complete_report(tiny_serial):
 def test_rerun_skips_finished_runs_and_gives_identical_numbers(tiny_serial, fake_real):
     out, _ = tiny_serial
     before = _metrics(out)
+    first = json.loads((out / "sweep_clock.json").read_text())
     lines = []
     R.reproduce("tiny", out, workers=1, backend=STANDIN, real_dir=fake_real, log=lines.append, write_report=False)
     assert any("0 to run" in l for l in lines), lines
     assert _metrics(out) == before
+    # the sweep's wall time adds up over invocations: a resumed sweep still reports what the whole cost
+    clock = json.loads((out / "sweep_clock.json").read_text())
+    assert len(clock["sessions"]) == len(first["sessions"]) + 1
+    assert clock["sessions"][-1]["runs_run"] == 0 and first["sessions"][0]["runs_run"] > 0
+    assert clock["total"] >= first["total"] > 0
 
 
 def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, fake_real, tmp_path):
@@ -278,6 +284,21 @@ def tiny_pool(tmp_path_factory, fake_real):
 def test_process_pool_gives_the_serial_numbers(tiny_serial, tiny_pool):
     out, _ = tiny_serial
     assert _metrics(tiny_pool) == _metrics(out)
+
+
+def test_report_shows_per_joint_where_a_claim_fails(tiny_serial):
+    """Per-joint MSEs add up to the pooled MSE, and every claim that does not hold gets its per-joint and
+    per-task breakdown in the report."""
+    out, summary = tiny_serial
+    m = summary["intention"]["exolan"]["unseen"]
+    assert np.mean([j[0] for j in m["per_joint"]]) == pytest.approx(m["mse"][0], rel=1e-9)
+    md = (out / "report.md").read_text()
+    failing = [c for c in summary["intention_claims"] + summary["real_claims"] if c["verdict"] != "holds"]
+    assert failing, "the stand-in's claims should not all hold"
+    assert "### Where the claims that do not hold fail" in md
+    for c in failing:
+        assert f"| {c['claim']} |" in md.split("### Where the claims that do not hold fail", 1)[1]
+    assert "Wall time of the sweep" in md
 
 
 def test_paired_statistics():

@@ -10,7 +10,7 @@ signed-rank test (scipy.stats.wilcoxon, two-sided, exact for small n): per-user 
 heteroscedastic across people, so a rank test is safer than a paired t-test; with 7 users its smallest
 attainable p is 1/64 ~ 0.016. Where there are at least two seeds, a paired t-test over seeds (each seed's
 pooled MSE; scipy.stats.ttest_rel) is reported beside it. A claim "holds" when our change has the paper's
-sign and the user-level p < 0.05.
+sign, the user-level p < 0.05 and its size is at least a quarter of the paper's relative change (``verdict``).
 """
 from __future__ import annotations
 
@@ -71,6 +71,13 @@ def _mse(rows) -> float:
     return float(sum(sum(r["sse"]) for r in rows) / (n * k))
 
 
+def _mse_joints(rows) -> list[float]:
+    """MSE of each joint (hip, knee) pooled over the rows' samples."""
+    n = sum(r["n"] for r in rows)
+    k = len(rows[0]["sse"])
+    return [float(sum(r["sse"][j] for r in rows) / n) if n else float("nan") for j in range(k)]
+
+
 def _by(rows, key):
     out: dict[Any, list] = {}
     for r in rows:
@@ -91,11 +98,15 @@ def torque_stats(runs: list[dict], groups: dict[str, str], splits) -> dict:
     out: dict[str, Any] = {}
     for split in splits:
         per_seed, cyc, non, tasks, users, trials = [], [], [], {}, {}, {}
+        joints, task_joints = [], {}
         for r in runs:
             rows = [x for x in r["torque_rows"] if x["split"] == split]
             if not rows:
                 continue
             per_seed.append(_mse(rows))
+            joints.append(_mse_joints(rows))
+            for t, rr in _by(rows, lambda x: x["task"]).items():
+                task_joints.setdefault(t, []).append(_mse_joints(rr))
             c = [x for x in rows if is_cyclic(x["task"], groups)]
             nc = [x for x in rows if not is_cyclic(x["task"], groups)]
             cyc.append(_mse(c) if c else float("nan"))
@@ -110,6 +121,8 @@ def torque_stats(runs: list[dict], groups: dict[str, str], splits) -> dict:
         out[split] = {
             "mse": _ms(per_seed), "per_seed": per_seed, "cyclic": _ms(cyc), "noncyclic": _ms(non),
             "per_task": {t: _ms(v) for t, v in sorted(tasks.items())},
+            "per_joint": [_ms(v) for v in zip(*joints)],
+            "per_task_joint": {t: [float(np.mean(v)) for v in zip(*jj)] for t, jj in sorted(task_joints.items())},
             "per_user": {u: float(np.mean(v)) for u, v in sorted(users.items())},
             "per_trial": {u: float(np.mean(v)) for u, v in sorted(trials.items())},
         }
@@ -377,7 +390,7 @@ def _real_claims(real) -> list[dict]:
     for split in ("seen", "unseen_task", "unseen_user"):
         for a, b in pairs:
             # one person in two of the splits: pair over held-out trials (subject, task, leg) instead
-            c = _claim(real, split, a, b, -1e-9, f"{LABELS[a]}+LIM vs {LABELS[b]}+LIM (real, {split})",
+            c = _claim(real, split, a, b, None, f"{LABELS[a]}+LIM vs {LABELS[b]}+LIM (real, {split})",
                        unit="per_trial")
             if c:
                 out.append(c)
@@ -719,9 +732,7 @@ def _section_header(scale: Scale, meta: dict) -> list[str]:
          + (f" (simulated: {scale.users} users, tasks {scale.tasks}, {scale.seconds or 'default'} s per trial)"
             if meta['data'].endswith('/world') else "") + ".",
          f"Executor: {meta['executor']}, {meta['workers']} worker(s) x {meta['threads_per_worker']} thread(s), "
-         f"device {meta['device']}. {meta['n_runs']} training runs; wall time: world "
-         f"{meta['seconds']['world']:.0f} s, runs {meta['seconds']['runs']:.0f} s (0 s means every run was "
-         "already complete and was reused)."
+         f"device {meta['device']}. {meta['n_runs']} training runs. " + _wall_time(meta)
          + (f" **Failed runs, missing from the tables** (a re-run retries them): {', '.join(meta['failed_runs'])}."
             if meta.get("failed_runs") else ""), "",
          "**Reading this report.** Every number labelled *ours* was measured in this sweep. Numbers labelled "
@@ -745,6 +756,19 @@ def _section_header(scale: Scale, meta: dict) -> list[str]:
     return L
 
 
+def _wall_time(meta: dict) -> str:
+    """The sweep's wall time over every invocation (a resumed sweep adds up), and this invocation's."""
+    clock = meta.get("sweep_clock")
+    now = f"this invocation: world {meta['seconds']['world']:.0f} s, runs {meta['seconds']['runs']:.0f} s"
+    if not clock:
+        return f"Wall time of {now}."
+    t = clock["total_seconds"]
+    n = len(clock["sessions"])
+    return (f"**Wall time of the sweep: {clock['total'] / 60:.1f} min** (world {t.get('world', 0):.0f} s, runs "
+            f"{t.get('runs', 0):.0f} s, the world's reference rollouts {t.get('reference', 0):.0f} s; "
+            f"{n} invocation{'s' if n > 1 else ''}, `sweep_clock.json`); {now}.")
+
+
 def _section_intention(M: dict, claims: list[dict], figs: dict) -> list[str]:
     """1. Human intention estimation: torque MSE per method, the claims, the per-task comparison."""
     L = ["## 1. Human intention estimation", "",
@@ -761,6 +785,7 @@ def _section_intention(M: dict, claims: list[dict], figs: dict) -> list[str]:
           "TCN 450 N² m². The paper gives the other results as relative changes (below).", "",
           "### Claims", ""]
     L += _claims_table(claims)
+    L += _where_claims_fail(M, claims)
     L += _per_task_table(M)
     if "mse_bars" in figs:
         L += ["", f"![MSE per method]({figs['mse_bars']})", ""]
@@ -768,6 +793,40 @@ def _section_intention(M: dict, claims: list[dict], figs: dict) -> list[str]:
         L += [f"![torque trajectories]({figs['torque_tasks']})", "",
               "Torque trajectories of one held-out user (first seed): measured total torque, ExoLaN + LIM and "
               "MLP-TCN + LIM.", ""]
+    return L
+
+
+def _rel(a: float, b: float) -> float:
+    return a / b - 1.0 if np.isfinite(a) and np.isfinite(b) and b > 0 else float("nan")
+
+
+def _where_claims_fail(M: dict, claims: list[dict]) -> list[str]:
+    """For every claim that does not hold: its change per joint, and per task and joint, so that a reader
+    sees where it fails (a finding, not something to tune away)."""
+    failing = [c for c in claims if c["verdict"] != "holds" and "per_joint" in M[c["a"]][c["split"]]]
+    if not failing:
+        return []
+    L = ["", "### Where the claims that do not hold fail", "",
+         "Relative change of the claim's first method against its second (negative = first better), seed-mean "
+         "MSE of each joint; per task the same, hip / knee.", "",
+         "| claim | total | hip | knee | verdict |", "|---|---|---|---|---|"]
+    for c in failing:
+        A, B = M[c["a"]][c["split"]], M[c["b"]][c["split"]]
+        hk = [_pct(_rel(a[0], b[0])) for a, b in zip(A["per_joint"], B["per_joint"])]
+        L.append(f"| {c['claim']} | {_pct(_rel(A['mse'][0], B['mse'][0]))} | {' | '.join(hk)} | {c['verdict']} |")
+    for split in dict.fromkeys(c["split"] for c in failing):
+        cs = [c for c in failing if c["split"] == split]
+        tasks = sorted(set.intersection(*(set(M[c["a"]][split]["per_task_joint"]) &
+                                          set(M[c["b"]][split]["per_task_joint"]) for c in cs)))
+        L += ["", f"Per task, split *{split}* (total, then hip / knee):", "",
+              "| task | " + " | ".join(f"{M[c['a']]['label']} vs {M[c['b']]['label']}" for c in cs) + " |", "|---" * (len(cs) + 1) + "|"]
+        for t in tasks:
+            cells = []
+            for c in cs:
+                A, B = M[c["a"]][split], M[c["b"]][split]
+                hk = [_pct(_rel(a, b)) for a, b in zip(A["per_task_joint"][t], B["per_task_joint"][t])]
+                cells.append(f"{_pct(_rel(A['per_task'][t][0], B['per_task'][t][0]))} ({' / '.join(hk)})")
+            L.append(f"| {t} | " + " | ".join(cells) + " |")
     return L
 
 
@@ -902,6 +961,7 @@ def _section_real(scale: Scale, real_data, R: dict, claims: list[dict], figs: di
               "seeds) - trials of one person are not independent, so read p as descriptive. The 'users "
               "better' column counts trials here.", ""]
         L += _claims_table(claims)
+        L += _where_claims_fail(R, claims)
         if "real_mse_bars" in figs:
             L += ["", f"![real data]({figs['real_mse_bars']})"]
         L += [""]

@@ -657,6 +657,19 @@ def world_reference(out: Path, scale: Scale, backend, data_dir: Path) -> dict[st
     return rows
 
 
+def sweep_clock(out: Path, seconds: dict[str, float], n_run: int, where: str) -> dict:
+    """Add this invocation's wall times to out/sweep_clock.json and return the totals over every invocation:
+    a resumed sweep still reports what the whole sweep cost (the report prints it)."""
+    path = out / "sweep_clock.json"
+    sessions = json.loads(path.read_text())["sessions"] if path.exists() else []
+    sessions.append({"date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "runs_run": n_run, "where": where,
+                     "seconds": {k: round(v, 1) for k, v in seconds.items()}})
+    total = {k: sum(s["seconds"].get(k, 0.0) for s in sessions) for k in seconds}
+    clock = {"sessions": sessions, "total_seconds": total, "total": sum(total.values())}
+    write_json(path, clock)
+    return clock
+
+
 def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers: int | None = None,
               ray_address: str | None = None, real_dir: str | None = "auto", backend: str | None = None,
               device: str | None = None, log=print, write_report: bool = True) -> dict:
@@ -691,16 +704,19 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
                      device=device, plot_seed=scale.seeds[0], groups=be.task_groups())
     specs = plan(scale, with_real=real_dir is not None)
     t1 = time.perf_counter()
-    execute(specs, ctx, workers, ray_address, log=log)
+    ran = execute(specs, ctx, workers, ray_address, log=log)
     t_runs = time.perf_counter() - t1
     results = {s.run_id: load_result(out, s) for s in specs if _done(out, s, ctx)}
+    t2 = time.perf_counter()
     reference = world_reference(out, scale, be, data_dir) if data is None and scale.fd_study else None
+    clock = sweep_clock(out, {"world": t_world, "runs": t_runs, "reference": time.perf_counter() - t2},
+                        len(ran), f"{workers} worker(s) x {threads} thread(s), {device}, {cores} core(s)")
     missing = [s.run_id for s in specs if s.run_id not in results]
     specs = [s for s in specs if s.run_id in results]
     meta = {"scale": dataclasses.asdict(scale), "data": str(data_dir), "real_data": real_dir,
             "workers": workers, "threads_per_worker": threads, "device": device,
             "executor": f"ray {ray_address}" if ray_address else "local process pool",
-            "seconds": {"world": t_world, "runs": t_runs}, "task_groups": ctx.groups,
+            "seconds": {"world": t_world, "runs": t_runs}, "sweep_clock": clock, "task_groups": ctx.groups,
             "n_runs": len(specs), "failed_runs": missing, "reference_fd_rows": reference}
     if not write_report:
         return results
