@@ -70,6 +70,7 @@ def _diagnose(data, model=None, out=None, quick: bool = False, **settings) -> di
 
     cfg = dict(QUICK) if quick else {}
     cfg.update(settings)
+    tools = cfg.pop("tools", None)      # stubs for the learned path's fits and judgements (tests)
     s = Settings(**cfg)
     trials = load_trials(data)
     base = None
@@ -78,7 +79,7 @@ def _diagnose(data, model=None, out=None, quick: bool = False, **settings) -> di
             from ..train import load_run
             model, _meta = load_run(model)
         base = _pooled_base(model, trials, pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
-    res = run(None, model=base, settings=s, trials_loaded=trials)
+    res = run(None, model=base, settings=s, trials_loaded=trials, tools=tools)
     if out is not None:
         out = Path(out)
         rep = _report.write(out, res)
