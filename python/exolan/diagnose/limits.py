@@ -160,37 +160,18 @@ class InjectionFits:
 def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, sigma_r: float,
                         analytic: dict, gain: bool = True, delay: bool = True,
                         fits: InjectionFits | None = None) -> dict:
-    """The torque gain and the actuation delay these data can show, per joint of `analytic` (`detection_limits`),
-    measured by injection and recovery instead of computed at the base's present misfit:
+    """The torque gain and the actuation delay these data can show, per joint of `analytic`
+    (`detection_limits`), measured by injection and recovery instead of computed at the base's present misfit:
     `{"torque_gain": {joint: ...}, "actuation_delay": {joint: ...}}` (a kind not asked for is left empty).
 
-    Why: the computed limits assume every bit of the effect reaches the held-out gain, but a base fitted on data
-    holding it absorbs part of the controller's own variation o too (a saturating controller's o is partly a
-    function of the motion). Measured (slow-test world seed 2524): the computed limit said a hip gain shows above
-    k ≈ 1.32, and a planted 1.84 did not (own-variation null 4.8e-5 [-3.0e-6, 1.0e-4], the term's k 1.56); the
-    computed delay limit of a knee was 24.7 ms where a planted 21 ms was missed and 15.5 ms where 36.5 ms was
-    found 6 % short. So a known effect is written into the recorded joint torque, the base fitted again from its
-    start with the same recipe, and the test the data's candidate faces run on it: a gain k0 = 1/(1 − θ0) as
-    τ_rec + θ0 τ_e (a sensor over-reporting the exo torque by k0), tested by rule 3's own-variation test
-    (reference refit, the post-hoc screen's start, the term on o alone); a delay d0 as τ_rec + τ_e(t) − τ_e(t − d0)
-    (the limb feels the recorded torque d0 late), tested by rules 1 and 2 (the delay term refitted warm from the
-    screen's start must beat the reference beyond the refit noise). Before that, the share of o (and of its rate
-    ȯ) that the reference leaves in its training residual comes out of the recorded torque: an effect already in
-    the data would add to the injected one. The injection's held-out gain g0 and SE scale as θ² to where its test
-    just passes (`injected_limit`). One fit with every joint and both effects injected at once: a test leaves
-    the other injections in both of its models, which costs it power (a conservative limit), not bias. θ0 is
-    twice the computed limit (a gain's θ within [0.2, 0.8], a delay within [2, 50] % of the largest delay
-    searched): where the injection shows clearly if the computed limit is right, and not far from the answer if
-    it is not, so that the scaling is short; where the answer lies outside [0.6, 1.5] θ0 after all, a second
-    injection at 1.2 times it decides. Where the base is a given run (no start to fit from) the computed limits
-    are kept (empty result).
-
-    The delay's injection is off by default (`Settings.inject_delay`): on a clean world (seed 101, test settings)
-    it agreed with the computed limit (hip 15.5 ms against 15.9, knee 15.1 against 16.2), but where the data hold
-    a delay already, the term recovers part of it on top of the injected one (injected 11.8, 16.1 and 21.6 ms in
-    worlds with planted knee delays of 22, 24 and 21 ms came out 22.3, 19.6 and 32.3 ms), and the limit depends on
-    how much of the planted delay the base had absorbed (9.8, 11.9 and 19.6 ms, computed 16.5, 19.8 and 27.0; the
-    found delays 21.4, 18.4 and missed). The computed limit is consistent with what these worlds found."""
+    The share of the controller's own variation o (and of its rate ȯ) that the reference leaves in its training
+    residual comes out of the recorded torque first (an effect already in the data would add to the injected
+    one); then a gain k0 = 1/(1 − θ0) is written as τ_rec + θ0 τ_e and a delay d0 as τ_rec + τ_e(t) − τ_e(t − d0),
+    the base fitted again from its start, and the candidate's own test run on it (a gain: rule 3's own-variation
+    test; a delay: rules 1 and 2). The injection's gain and SE scale as θ² to where the test just passes
+    (`injected_limit`); θ0 is twice the computed limit, and an answer outside [0.6, 1.5] θ0 is measured again at
+    1.2 times it. Where the base is a given run the computed limits are kept (empty result). Why, and what it
+    measured: docs/DIAGNOSIS.md ("Measurement log", detection limits)."""
     fits = fits or InjectionFits()
     g_lim, d_lim = (analytic.get("torque_gain") or {}), (analytic.get("actuation_delay") or {})
     gj = [j for j, nm in enumerate(flat.joints) if gain and nm in g_lim]
