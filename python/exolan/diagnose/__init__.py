@@ -14,7 +14,7 @@ directory for diagnosis.json, diagnosis.md, the plots and (when something is acc
 model's `ext.*` tensors. `quick=True` uses short fits (tests); keyword `settings` overrides any
 `procedure.Settings` field.
 
-The procedure and its decision rule are documented in `exolan.diagnose.procedure`; the candidate library
+The procedure is `exolan.diagnose.procedure` (its steps in their own modules) and its decision rule is in docs/DIAGNOSIS.md; the candidate library
 in `exolan.diagnose.candidates`.
 """
 from __future__ import annotations

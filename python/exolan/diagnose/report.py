@@ -243,11 +243,11 @@ def _limit_lines(limits: dict) -> list[str]:
          "order) through its rate. Gains between the limits below, and delays shorter than the one below, would "
          "not clear the sampling and refit noise of these data (an estimate at the base's present misfit, "
          "optimistic where the base absorbs part of the own variation too; a delay near its limit is also "
-         "estimated short; `procedure.gain_detection_limit`, `procedure.delay_detection_limit`)." +
+         "estimated short; `limits.gain_detection_limit`, `limits.delay_detection_limit`)." +
          (" The gain's limits here are measured, not computed: a known gain was written into the recorded joint "
           "torque, the base fitted again from its start and rule 3's own-variation test run on it as on the data; "
           "its held-out gain, scaled as θ², gives the gain at which the test would just pass "
-          "(`procedure.limits_by_injection`; per joint below the table)."
+          "(`limits.limits_by_injection`; per joint below the table)."
           if measured else "") +
          (" The delay's limit is measured the same way: a known delay written into the recorded joint torque "
           "(τ_e(t) − τ_e(t − d)), the base fitted again, the delay term refitted on it and held to rules 1 and 2."
