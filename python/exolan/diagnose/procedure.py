@@ -19,7 +19,7 @@ from .refits import FitCache, metrics, refit
 from .results import public, strip
 from .rules import paired_gain
 from .session import Session, Tools
-from .settings import Budget, Settings, heartbeat, log
+from .settings import Budget, Settings, heartbeat, log, step
 
 __all__ = ["Settings", "Tools", "load_trials", "run"]
 
@@ -130,6 +130,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
 
     # 1. the base, the weights, the reference refit (every decision compares held-out errors weighted as the fits
     #    are; what the report calls a held-out gain is the unweighted one, the user's torque error)
+    step(s, "1/7 base and reference")
     base, base_start, base_source = fit_base(flat, s, model)
     w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
     scale = "misfit-weighted" if w_held is not None else "unweighted"
@@ -167,17 +168,22 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
     baseline, ro_base = metrics(ss.ref, flat, s, starts)
     baseline.update(source=base_source, noise_floor=noise)
     structure = R.residual_structure(ss.ref, flat, ss.held)
+    step(s, "detection limits")
     limits = all_limits(flat, s, ss.base_start, ss.ref, ss.held, ss.w_held, ss.sigma_r)
     log(s, f"{ss.budget.m} candidates: a single-term test at {100 * ss.budget.single():.3g} % (family-wise "
            f"{100 * s.alpha:.3g} %, `settings.Budget`)")
 
+    step(s, "2/7 candidates term by term")
     results = single.fit_candidates(ss)                         # 2. screen, warm refit, rules 1, 2, 4, 5; rescue
+    step(s, "3/7 nulls of exo-driven terms")
     nulls.run_nulls(ss, results)                                # 3. rule 3 for exo-driven terms
     single.verdicts(results)                                    # 4. single-term verdicts
     nulls.outdone_by_a_doubted_rival(results, lambda eff, name: ss.fitted.get(
         (eff, flat.joints.index(name)), (None, None))[1], lambda a, b: ss.gain(a, b))
+    step(s, "5/7 forward selection")
     sel = selection.forward(ss, results)                        # 5. forward selection (Holm)
     selection.without_terms(ss, results)                        # 6. backlash, payload
+    step(s, "7/7 extended model")
     accepted, model, cis = extended.joint_fit(ss, results, sel.acc_init)     # 7. the extended model
     ext_model, ext_rep, ro_ext = None, None, None
     if accepted:

@@ -74,6 +74,7 @@ class Budget:
 
 
 _LAST_LINE = [time.time()]     # when the last progress line was printed (`log`, `heartbeat`)
+_STEP = [""]                    # the step the run is on, named in every heartbeat (`step`)
 HEARTBEAT_S = 25.0              # a line at least this often while a fit runs (the user sees it is alive)
 
 
@@ -83,9 +84,17 @@ def log(s: Settings, msg: str):
         print(f"[diagnose {time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
+def step(s: Settings, name: str) -> None:
+    """Enter a step of the procedure: a line now, and its name in every heartbeat until the next."""
+    _STEP[0] = name
+    log(s, f"== {name}")
+
+
 def heartbeat(s: Settings, what: str, steps: int):
-    """A `fit.train` progress callback: a line saying which fit and step, when none was printed for a while."""
-    def tick(step: int, loss: float) -> None:
+    """A `fit.train` progress callback: a line saying which step of the procedure, which fit (its terms: the
+    candidate) and which optimiser step, when none was printed for a while."""
+    def tick(i: int, loss: float) -> None:
         if s.verbose and time.time() - _LAST_LINE[0] >= HEARTBEAT_S:
-            log(s, f"... {what}: step {step + 1}/{steps}, loss {loss:.4g}")
+            where = f"[{_STEP[0]}] " if _STEP[0] else ""
+            log(s, f"... {where}{what}: step {i + 1}/{steps}, loss {loss:.4g}")
     return tick
