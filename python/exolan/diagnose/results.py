@@ -141,22 +141,3 @@ def public(e) -> dict:
 
 def strip(m: dict | None) -> dict:
     return {} if m is None else jsonable(dict(m))
-
-
-@dataclass
-class Look:
-    """One comparison of held-out errors that a decision made (its gain, interval, level and whether it passed)."""
-    gain: float
-    ci: list
-    level: float
-    passes: bool
-    what: str = ""
-    extra: dict = field(default_factory=dict)
-
-    def summary(self) -> str:
-        return (f"{self.what}: {self.gain:.3g} [{self.ci[0]:.3g}, {self.ci[1]:.3g}] at {100 * self.level:.2f} %: "
-                f"{'passes' if self.passes else 'fails'}")
-
-    def to_json(self) -> dict:
-        return jsonable(dict(gain=self.gain, ci=self.ci, level=self.level, passes=self.passes, what=self.what,
-                             **self.extra))
