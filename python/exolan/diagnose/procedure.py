@@ -192,6 +192,9 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
             ext_model = conf["model"]
             ext_rep, ro_ext = extended.describe(ss, accepted, conf, cis, sel.acc_init, starts, ro_base)
     extended.notes(ss, results, ext_model, limits)
+    for e in results:
+        if e["status"] in ("accepted", "ambiguous") and e["kind"] == "finding":
+            log(s, e.summary())
     if phys is not None:
         from . import physics_path
         physics_path.attach(results, phys, flat)
