@@ -190,7 +190,7 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     eff, joint, _ = WORLD_CASES[case]
     if eff == "torque_gain":
         # what the report calls detectable agrees with what was detected: a gain inside the limits the report
-        # measured for these data (by injection, `procedure.limits_by_injection`) may be missed, but nothing else may be
+        # measured for these data (by injection, `limits.limits_by_injection`) may be missed, but nothing else may be
         # accepted in its place (measured: a hip gain of 1.84, limit 1.80, once let a hip strap through)
         lim = rep["detection_limits"]["torque_gain"][joint]
         assert lim["method"] == "injection", msg
@@ -216,7 +216,7 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     if eff == "torque_gain":
         # A gain is identified by the controller's own variation alone (about 6 % of the exo torque's variance in
         # these worlds), part of which the base absorbs too; along the copy of the joint torque it trades against
-        # the scale of the base's dynamics, and its fit from scratch ends where it starts (`procedure._fresh_fit`;
+        # the scale of the base's dynamics, and its fit from scratch ends where it starts (`refits.fresh_fit`;
         # measured: planted 1.87, 1.92, 2.37, 2.24 came out 2.26, 2.36, 2.61, 2.46 from the warm estimates 1.56,
         # 1.74, 2.17, 1.94). So not within 20 %: the report's interval (widened by that spread) must hold the truth.
         assert f["ci"][0] <= value <= f["ci"][1] and f["estimate"] > 1, msg
@@ -242,7 +242,7 @@ def test_clean_world_finds_nothing(tmp_path):
     # the report says how far from 1 an exo torque gain would have to be to show in these data
     limits = rep["detection_limits"]["torque_gain"]
     assert set(limits) == {"hip", "knee"} and all(0 < v["k_below"] < 1 < v["k_above"] for v in limits.values())
-    # ... measured by writing a known gain into the data (`procedure.limits_by_injection`), the computed one beside it
+    # ... measured by writing a known gain into the data (`limits.limits_by_injection`), the computed one beside it
     assert all(v["method"] == "injection" and v["injected_k"] > 1 and "computed" in v for v in limits.values())
     assert "written into the data was recovered as" in md
     # ... and how long an actuation delay would have to be (computed: its injection is off by default)

@@ -10,8 +10,11 @@ import torch
 
 from exolan.diagnose import stats
 from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, sample_groups, train
-from exolan.diagnose.procedure import (Settings, _above_noise, _confirm, _gain, _invariance_reason, _spread,
-                                       _track_lag)
+from exolan.diagnose import refits, rules
+from exolan.diagnose.nulls import track_lag
+from exolan.diagnose.rules import above_noise, confirm, invariance_reason, invariance_rule, paired_gain
+from exolan.diagnose.session import Tools
+from exolan.diagnose.settings import Settings
 from exolan.diagnose.synthetic import two_link
 
 
@@ -183,14 +186,14 @@ def test_task_invariance_rule_rejects_a_gain_from_one_task_only():
     s = Settings(n_boot=200)
     # a joint property: the same small gain in every task (plus noise)
     d_all = 1e-3 + 1e-3 * rng.standard_normal(groups.size)
-    assert _spread(d_all, groups, "task", s)["passes"]
+    assert invariance_rule(d_all, groups, "task", s)["passes"]
     # a misfit soaked up in one task: large there, nothing elsewhere
     d_one = np.where(groups == "jump", 5e-3, 0.0) + 1e-3 * rng.standard_normal(groups.size)
-    res = _spread(d_one, groups, "task", s)
+    res = invariance_rule(d_one, groups, "task", s)
     assert not res["passes"] and res["dropped"] == ["jump"]
     assert set(res["groups"]) == {"walk", "squat", "jump", "run"}
     # one recording: not testable, the rule does not decide
-    assert _spread(d_one, np.zeros(groups.size, dtype=str), "none", s)["passes"]
+    assert invariance_rule(d_one, np.zeros(groups.size, dtype=str), "none", s)["passes"]
 
 
 def test_the_extended_models_confirmation_weights_each_task_by_its_z_score():
@@ -208,17 +211,17 @@ def test_the_extended_models_confirmation_weights_each_task_by_its_z_score():
     noise = rng.standard_normal(groups.size) * np.where(noisy, 3e-2, 1e-3)
     helps = 1e-4 + noise
     quiet = [np.full(groups.size, 1e-6)] * 3
-    c = _confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025, twins=quiet)
+    c = confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025, twins=quiet)
     assert c["passes"] and c["ci"][0] > 0 and c["combination"] == "tasks weighted 1/SD"
     assert c["pooled"]["ci"][0] < 0 < c["pooled"]["gain"]          # the pooled mean would not have confirmed it
     assert c["weights"]["run"] > 10 * c["weights"]["lunge"] and c["level"] == 0.975
-    assert not _confirm(e_ref, e_ref - noise, groups, "task", s, alpha=0.025, twins=quiet)["passes"]
+    assert not confirm(e_ref, e_ref - noise, groups, "task", s, alpha=0.025, twins=quiet)["passes"]
     # beyond the refit noise: a refit that moves every task's gain by 2e-4 sinks it
     loud = [np.full(groups.size, 2e-4), np.full(groups.size, -2e-4)]
-    c = _confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025, twins=loud)
+    c = confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025, twins=loud)
     assert not c["passes"] and c["refit_sd"] == pytest.approx(2e-4)
-    for c in (_confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025),
-              _confirm(e_ref, e_ref - helps, np.zeros(groups.size, dtype=str), "none", s, alpha=0.025, twins=quiet)):
+    for c in (confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025),
+              confirm(e_ref, e_ref - helps, np.zeros(groups.size, dtype=str), "none", s, alpha=0.025, twins=quiet)):
         assert c["combination"] == "pooled" and c["gain"] == c["pooled"]["gain"] and not c["passes"]
 
 
@@ -244,26 +247,26 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
     (Cochran's Q) — a small real effect; the same with tasks that disagree — a misfit soaked up differently
     in each task; and a task made worse beyond its noise fails whatever θ says."""
     rng, groups, s, d, noise = _rest_gain_case(1, 3e-3, 3e-4, 2e-5)
-    assert not _spread(d, groups, "task", s)["passes"]          # the gain path alone fails
+    assert not invariance_rule(d, groups, "task", s)["passes"]          # the gain path alone fails
     se = dict(walk=0.003, squat=0.006, calisthenics=0.005, rest=0.0026)
     agree = dict(walk=0.025, squat=0.036, calisthenics=0.029, rest=0.0275)
-    res = _spread(d, groups, "task", s, by_group=_by_group(agree, se))
+    res = invariance_rule(d, groups, "task", s, by_group=_by_group(agree, se))
     assert res["passes"] and res["consistent"] and res["heterogeneity"]["p"] > 0.05
     differ = dict(walk=0.020, squat=0.045, calisthenics=0.11, rest=0.03)
-    res = _spread(d, groups, "task", s, by_group=_by_group(differ, se))
+    res = invariance_rule(d, groups, "task", s, by_group=_by_group(differ, se))
     assert not res["passes"] and not res["consistent"] and res["heterogeneity"]["p"] < 0.05
     unidentified = dict(agree, rest=0.004)
-    assert not _spread(d, groups, "task", s, by_group=_by_group(unidentified, se))["passes"]
+    assert not invariance_rule(d, groups, "task", s, by_group=_by_group(unidentified, se))["passes"]
     # the rest's gain pointing the wrong way: θ agreeing is not enough
     d_neg = np.where(groups == "calisthenics", 3e-4, -2e-5) + noise
-    assert not _spread(d_neg, groups, "task", s, by_group=_by_group(agree, se))["passes"]
+    assert not invariance_rule(d_neg, groups, "task", s, by_group=_by_group(agree, se))["passes"]
     # a group made clearly worse: fails even with agreeing θ and a gain elsewhere
     d_hurt = np.where(groups == "walk", -2e-3, 1e-3) + 1e-4 * rng.standard_normal(groups.size)
     twin = [np.where(groups == "walk", 1e-4, 0.0)]          # a twin refit's held-out difference per sample
-    res = _spread(d_hurt, groups, "task", s, by_group=_by_group(agree, se), twins=twin)
+    res = invariance_rule(d_hurt, groups, "task", s, by_group=_by_group(agree, se), twins=twin)
     assert res["hurt"] == ["walk"] and not res["passes"]
     # ... but not when that group's refit noise is as large as the loss
-    res = _spread(d_hurt, groups, "task", s, twins=[np.where(groups == "walk", 2e-3, 0.0)])
+    res = invariance_rule(d_hurt, groups, "task", s, twins=[np.where(groups == "walk", 2e-3, 0.0)])
     assert res["hurt"] == []
 
 
@@ -278,32 +281,32 @@ def test_noise_floor_rule_keeps_the_gains_skew_and_adds_the_refit_noise():
     e_ref = np.full(N, 1e-3)
     d = np.full(N, 1e-4) + rng.normal(0, 1e-5, N)
     d[3000:3200] += 2e-2 * (1 + 0.1 * rng.normal(size=200))
-    g = _gain(e_ref, e_ref - d, s)
+    g = paired_gain(e_ref, e_ref - d, s)
     assert g["ci"][0] > 5e-5 and g["gain"] - 1.96 * g["se"] < 0       # the normal bound would reject it
-    assert _above_noise(g, sigma_r=0.05 * g["se"])
-    assert not _above_noise(g, sigma_r=g["gain"])
+    assert above_noise(g, sigma_r=0.05 * g["se"])
+    assert not above_noise(g, sigma_r=g["gain"])
     d = rng.normal(1e-4, 1e-3, N)
-    g = _gain(e_ref, e_ref - d, s)
+    g = paired_gain(e_ref, e_ref - d, s)
     for sigma in (1e-6, g["gain"], 3 * g["gain"]):
         margin = g["gain"] - 1.96 * math.sqrt(g["se"] ** 2 + sigma ** 2)
         if abs(margin) > 0.2 * g["se"]:
-            assert _above_noise(g, sigma) == (margin > 0), (sigma, margin)
+            assert above_noise(g, sigma) == (margin > 0), (sigma, margin)
 
 
 def test_task_invariance_gain_path_counts_the_refit_noise_of_the_rest():
     """A rest gain whose bootstrap CI is above 0 but which a refit with another minibatch order changes as
     much does not pass the gain path (as rule 2 for the whole gain)."""
     _, groups, s, d, _ = _rest_gain_case(2, 2e-4, 3e-4, 3e-5)
-    quiet = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3)
+    quiet = invariance_rule(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3)
     assert quiet["passes"] and quiet["ci_rest"][0] > 0
-    noisy = _spread(d, groups, "task", s, twins=[np.full(groups.size, 3e-5), np.full(groups.size, -3e-5)])
+    noisy = invariance_rule(d, groups, "task", s, twins=[np.full(groups.size, 3e-5), np.full(groups.size, -3e-5)])
     assert not noisy["passes"] and noisy["ci_rest"][0] > 0 and noisy["refit_sd_rest"] == pytest.approx(3e-5)
     # a quiet rest gain whose θ the rest do not identify on their own does not pass either
     se = dict(walk=0.16, squat=0.36, calisthenics=0.08, rest=0.15)
-    vague = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3,
+    vague = invariance_rule(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3,
                     by_group=_by_group(dict(walk=0.08, squat=0.28, calisthenics=0.42, rest=0.11), se))
     assert not vague["passes"] and not vague["rest_identifies"]
-    sharp = _spread(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3,
+    sharp = invariance_rule(d, groups, "task", s, twins=[np.full(groups.size, 1e-6)] * 3,
                     by_group=_by_group(dict(walk=0.41, squat=0.5, calisthenics=0.48, rest=0.42),
                                        dict(walk=0.04, squat=0.3, calisthenics=0.045, rest=0.04)))
     assert sharp["passes"] and sharp["rest_identifies"]
@@ -337,7 +340,7 @@ def test_task_invariance_rest_gain_weights_each_task_by_its_z_score():
         return sum(w[g] * res["groups"][g] for g in w) / tot / (1.0 / math.sqrt(tot))
 
     d = series(dict(walk=1.6e-4, squat=4e-4, calisthenics=3.6e-3))
-    quiet_gain = _spread(d, groups, "task", s)
+    quiet_gain = invariance_rule(d, groups, "task", s)
     assert quiet_gain["dropped"] == ["calisthenics"]
     w = quiet_gain["rest_weights"]
     sd = quiet_gain["group_sd"]
@@ -345,10 +348,10 @@ def test_task_invariance_rest_gain_weights_each_task_by_its_z_score():
     assert quiet_gain["gain_rest"] == pytest.approx(sum(w[g] * quiet_gain["groups"][g] for g in w), rel=1e-9)
     assert quiet_gain["passes"] and not pooled_passes(d)
     d = series(dict(walk=0.0, squat=6e-4, calisthenics=3.6e-3))
-    noisy_gain = _spread(d, groups, "task", s)
+    noisy_gain = invariance_rule(d, groups, "task", s)
     assert not noisy_gain["passes"] and pooled_passes(d)
     d = series(dict(walk=0.0, squat=1.1e-3, calisthenics=5e-3))
-    absorbed_in_walking = _spread(d, groups, "task", s)
+    absorbed_in_walking = invariance_rule(d, groups, "task", s)
     assert absorbed_in_walking["passes"] and inverse_variance_z(absorbed_in_walking) < 1.96
 
 
@@ -383,7 +386,7 @@ def test_decisions_weight_held_out_errors_as_the_fits_do_and_users_see_them_unwe
     """`_held_errors`: the user's error is the plain sum over joints of the mass-normalised squared torque
     error; the decision's weights each joint's error by its trial's fit weight; without weights both agree."""
     from exolan.diagnose.fit import sq_errors
-    from exolan.diagnose.procedure import _held_errors
+    from exolan.diagnose.refits import held_errors as _held_errors
 
     base = make_base(arm, hidden=8, seed=0)
     held = arm.index("held")
@@ -399,53 +402,69 @@ def test_decisions_weight_held_out_errors_as_the_fits_do_and_users_see_them_unwe
     np.testing.assert_array_equal(user0, decision0)
 
 
-def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_delay_frozen(arm, monkeypatch):
+def test_fresh_fit_frees_the_inertia_for_a_delay_then_stabilises_it_with_the_delay_frozen(arm):
     """A set holding a delay is fitted without the acceleration term (which holds H up, and a held-up H takes
     part of a delay), then refitted with it while the terms stay frozen; a friction keeps the term throughout."""
-    import exolan.diagnose.procedure as P
-
     calls = []
-    real = P.train
 
     def spy(model, flat, steps, **kw):
         calls.append(dict(w_acc=kw["w_acc"], free=[p.requires_grad for p in model.ext_parameters()],
                           delay=float(model.delay()[0].detach()) if "actuation_delay" in model.effects else None))
-        return real(model, flat, steps, **kw)
+        return train(model, flat, steps, **kw)
 
-    monkeypatch.setattr(P, "train", spy)
     s = Settings(steps_base=12, steps_refit=8, hidden=8, verbose=False)
     start = make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
-    m = P._fresh_fit(arm, s, [("actuation_delay", 0)], {"actuation_delay": 0.02}, start)
+    m = refits.fresh_fit(arm, s, [("actuation_delay", 0)], {"actuation_delay": 0.02}, start, trainer=spy)
     assert [c["w_acc"] for c in calls] == [0.0, 0.0, s.w_acc]
     assert all(calls[0]["free"]) and all(calls[1]["free"]) and not any(calls[2]["free"])
     assert float(m.delay()[0].detach()) == calls[2]["delay"]        # the stabilising refit leaves the delay alone
     assert all(p.requires_grad for p in m.ext_parameters())  # and the terms are free again afterwards
     calls.clear()
-    P._fresh_fit(arm, s, [("viscous_damping", 0)], {}, start)
+    refits.fresh_fit(arm, s, [("viscous_damping", 0)], {}, start, trainer=spy)
     assert [c["w_acc"] for c in calls] == [s.w_acc, s.w_acc]
     assert all(torch.equal(a, b) for a, b in zip(start.state_dict().values(),
                                                    make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
                                                    .state_dict().values()))   # the start itself is not fitted
 
 
-def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=None, **settings):
+def _open_tools(**over) -> dict:
+    """Stubs that force rules 1's user condition, 2, 5 and the tasks' combined bound open (the fits and their
+    comparisons are real): a candidate reaches forward selection and the extended model on its gain's sign. A
+    paired comparison still asks every seed to gain. `over` replaces any of them."""
+    def paired(pairs, groups, kind, s, alpha):
+        g = rules_paired(pairs, groups, kind, s, alpha)
+        return dict(g, passes_bound=True, passes=bool(min(g["gain_by_seed"]) > 0))
+
+    tools = dict(above_noise=lambda g, sigma, seed=0, alpha=0.05: True,
+                 user_improves=lambda before, after: True,
+                 invariance=lambda *a, **k: dict(invariance_rule(*a, **k), passes=True),
+                 confirm=lambda *a, **k: dict(confirm(*a, **k), passes=True),
+                 paired_confirm=paired,
+                 term_share=lambda *a, **k: dict(rules.term_share(*a, **k), passes_floor=True))
+    tools.update(over)
+    return tools
+
+
+def rules_paired(*a, **k):
+    from exolan.diagnose.secondlook import paired_confirm
+
+    return paired_confirm(*a, **k)
+
+
+def _linear_drive_with_rules_open(tmp_path, joint_ci=None, coulomb=None, tools=None, **settings):
     """Diagnose a linear drive (viscous damping planted) for damping and Coulomb friction with rules 2 and 5
-    forced open (and the noise bound of the tasks' combined gain, `_balanced`), so that both terms reach forward
-    selection. Returns the report and the effect sets fitted from scratch (the term-free fits at other seeds
-    that measure the noise between optima among them); `joint_ci(effect, pci)` may replace the parameter CI
-    of a from-scratch fit; `coulomb` plants a Coulomb force (N) beside the damping; `settings` reach `diagnose`."""
-    import exolan.diagnose.procedure as P
+    forced open (and the noise bound of the fits' comparisons), so that both terms reach forward selection.
+    Returns the report and the effect sets fitted from scratch (the term-free fits at other seeds that measure
+    the noise between optima among them); `joint_ci(effect, pci)` may replace the parameter CI of a
+    from-scratch fit; `coulomb` plants a Coulomb force (N) beside the damping; `tools` overrides the stubs of
+    `_open_tools` (a `fresh_fit` given there is wrapped by the recorder); `settings` reach `diagnose`."""
     from exolan.diagnose import diagnose
+    from exolan.diagnose.inference import param_ci
     from exolan.diagnose.synthetic import linear_drive
 
-    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: True)
-    balanced = P._balanced
-    monkeypatch.setattr(P, "_balanced", lambda *a, **k: dict(balanced(*a, **k), above_noise=True))
-    monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
-    spread = P._spread
-    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
+    stubs = _open_tools(**(tools or {}))
     fits, fresh_ids = [], set()
-    fresh = P._fresh_fit
+    fresh = stubs.pop("fresh_fit", refits.fresh_fit)
 
     def recorded(*a, **k):
         m = fresh(*a, **k)
@@ -453,60 +472,52 @@ def _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=None, coulomb=
         fresh_ids.add(id(m))
         return m
 
-    monkeypatch.setattr(P, "_fresh_fit", recorded)
+    stubs["fresh_fit"] = recorded
     if joint_ci is not None:
-        param_ci = P._param_ci
-
         def changed(model, flat, effect, j):
             out = param_ci(model, flat, effect, j)
             return joint_ci(effect, out) if id(model) in fresh_ids else out
 
-        monkeypatch.setattr(P, "_param_ci", changed)
+        stubs["param_ci"] = changed
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0, coulomb=coulomb)
     rep = diagnose(trials, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
-                   effects=("viscous_damping", "coulomb_friction"), verbose=False, **settings)
+                   effects=("viscous_damping", "coulomb_friction"), verbose=False, tools=Tools(**stubs), **settings)
     return rep, fits
 
 
 @pytest.mark.parametrize("verdict", [True, False])
 def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cross_seed_comparison_fails(
-        tmp_path, monkeypatch, verdict):
-    """Forward selection's second try (rules forced open, the cross-seed comparison of the fits from scratch
+        tmp_path, verdict):
+    """Forward selection's second look (rules forced open, the cross-seed comparison of the fits from scratch
     forced to fail): the accepted term alone and with the further one are fitted from scratch at `n_paired` other
-    seeds, paired seed by seed (`_paired_confirm` at 97.5 %, its verdict forced), after the further term's own
-    share of its fit cleared the floor; the report carries both comparisons, and the verdict decides. Step 7's
-    fit from scratch, its cross-seed comparison forced to fail with a positive gain, is judged paired over the
-    same seeds too (the verdict forced again): the set so accepted, or the first term alone, each over the fits
-    that forward selection made (none made again; the term-free base fitted at the seeds beyond the optimum
-    twins'). Where that verdict fails, the reference's refit with the terms held there confirms the first term."""
-    import exolan.diagnose.procedure as P
+    seeds, paired seed by seed (`paired_confirm` at half the further term's Holm level, its verdict forced),
+    after the further term's own share of its fit cleared the floor; the report carries both comparisons, and
+    the verdict decides. Step 7's fit from scratch, its cross-seed comparison forced to fail with a positive
+    gain, is judged by the same second look (the verdict forced again) at its share of the confirmation's level:
+    the set so accepted, or the first term alone, each over the fits that forward selection made (none made
+    again; the term-free base fitted at the seeds beyond the optimum twins'). Where that verdict fails, the
+    reference's refit with the terms held there confirms the first term."""
+    calls, step7 = [], []
 
-    real_confirm, real_paired, calls, step7, inside = P._confirm, P._paired_confirm, [], [], []
-
-    def confirm(*a, **k):
-        g = real_confirm(*a, **k)
-        if inside:      # `_paired_confirm`'s own use
-            return g
-        if a[5] == 0.025:
+    def confirm_stub(*a, look="", **k):
+        g = dict(confirm(*a, **k), passes=True)
+        if look.startswith("extended"):
             step7.append(g)
-        if a[5] == 0.05 or len(step7) == 1:     # forward selection's, and step 7's first comparison
+        if look == "forward: cross-seed" or look == "extended: from scratch":
             g = dict(g, passes=False, gain=abs(g["gain"]) + 1e-12)
         return g
 
-    monkeypatch.setattr(P, "_confirm", confirm)
-
     def paired(pairs, groups, kind, s, alpha):
         calls.append(dict(alpha=alpha, k=len(pairs)))
-        inside.append(True)
-        try:
-            return dict(real_paired(pairs, groups, kind, s, alpha), passes=verdict)
-        finally:
-            inside.pop()
+        return dict(rules_paired(pairs, groups, kind, s, alpha), passes=verdict)
 
-    monkeypatch.setattr(P, "_paired_confirm", paired)
-    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, coulomb=4.0)   # the further term gains
+    rep, fits = _linear_drive_with_rules_open(tmp_path, coulomb=4.0, tools=dict(confirm=confirm_stub,
+                                                                                 paired_confirm=paired))
     K = Settings().n_paired + 1
-    assert calls == [dict(alpha=0.025, k=K)] * 2
+    # forward selection's second look at half the Holm level of the second term (m = 2: 5 %), step 7's at a
+    # third of the confirmation's 5 %
+    assert [c["k"] for c in calls] == [K, K]
+    assert calls[0]["alpha"] == pytest.approx(0.025) and calls[1]["alpha"] == pytest.approx(0.05 / 3)
     assert len(step7) == (1 if verdict else 2)      # the reference's refit with the terms held where it fails
     everything = rep["findings"] + rep["rejected"]
     second = [e for e in everything if "conditional_gain" in e]
@@ -536,13 +547,13 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
         assert rep["extended"]["terms"] == [f"{first['effect']}:x"]
 
 
-def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkeypatch):
+def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path):
     """Mechanics of forward selection's confirmation (rules forced open, so that the second term reaches it):
     the further term is refitted with the accepted one from scratch, the report carries that comparison, and
     the extended model is the cached from-scratch fit of the final set (no third fit), its terms the reported
     estimates. Both comparisons of fits from scratch combine the trials' gains beyond the noise between optima,
     measured once by the term-free base fitted at `n_optima` other seeds."""
-    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch)
+    rep, fits = _linear_drive_with_rules_open(tmp_path)
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     cg = second[0]["conditional_gain"]     # the user's unweighted gain is reported beside the decision's
@@ -558,23 +569,19 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path, monkey
         assert rep["extended"]["parameters"][f"{f['effect']}:x"] == pytest.approx(f["estimate"], rel=1e-9)
 
 
-def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(tmp_path, monkeypatch):
+def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(tmp_path):
     """A term fitted from scratch with another recipe than the reference's (the delay's: no acceleration term,
     then a stabilising refit) is judged against a term-free base fitted with that recipe, not the reference: in
     forward selection (the model without the further term gets the recipe of the one with it) and in the extended
     model's confirmation, which the report names. Mechanics only: the frictions are made to take that recipe."""
-    import exolan.diagnose.procedure as P
-
-    monkeypatch.setattr(P, "INERTIA_CONFUSED", ("viscous_damping",))
     calls = []
-    real = P._fresh_fit
 
     def recorded(flat, s, effects, init, start, confused=None):
         calls.append((tuple(e for e, _ in effects), confused))
-        return real(flat, s, effects, init, start, confused=confused)
+        return refits.fresh_fit(flat, s, effects, init, start, confused=confused)
 
-    monkeypatch.setattr(P, "_fresh_fit", recorded)
-    rep, _ = _linear_drive_with_rules_open(tmp_path, monkeypatch)
+    rep, _ = _linear_drive_with_rules_open(tmp_path, tools=dict(fresh_fit=recorded,
+                                                                inertia_confused=("viscous_damping",)))
     assert sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
     first = next(e for e in rep["findings"] if "conditional_gain" not in e)["effect"]
     # the model without the further term takes the recipe of the one with it (the damping's)
@@ -584,52 +591,45 @@ def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(
     # each fitted once (cached): the two with terms, the term-free base and its twins at other seeds
     assert len(calls) == 3 + Settings().n_optima and calls.count(((), True)) == 1 + Settings().n_optima
     cf = rep["extended"]["confirmation"]
-    assert cf["against"] == "a base fitted from scratch with the same recipe" and cf["level"] == 0.975
+    assert cf["against"] == "a base fitted from scratch with the same recipe"
+    assert cf["level"] == pytest.approx(1 - 0.05 / 3)         # a third of the confirmation's 5 %: three looks
     assert "same recipe" in rep["extended"]["model"]
     md = (tmp_path / "diagnosis.md").read_text()
     assert "confirmed against a base fitted from scratch with the same recipe" in md
 
 
-def _fresh_extended_loses(monkeypatch, held_too: bool = False):
-    """Make the extended model's first confirmation (the fit from scratch, judged at alpha 0.025) lose; with
-    `held_too` the second one (the reference's refit with the terms held) as well. Forward selection's
-    comparison of two fits from scratch (alpha 0.05) is left as it is."""
-    import exolan.diagnose.procedure as P
-
-    real = P._confirm
+def _fresh_extended_loses(held_too: bool = False) -> tuple[list, dict]:
+    """A `confirm` stub that makes the extended model's first look (the fit from scratch) lose; with `held_too`
+    its last one (the reference's refit with the terms held) as well. Forward selection's comparisons of two
+    fits from scratch stay open. Returns the record of the extended model's looks and the stubs."""
     calls = []
 
-    def confirm(e_before, e_after, groups, kind, s, alpha, **kw):
-        g = real(e_before, e_after, groups, kind, s, alpha, **kw)
-        if alpha != 0.025:                                      # Bonferroni over step 7's two comparisons
+    def confirm_stub(*a, look="", **k):
+        g = dict(confirm(*a, **k), passes=True)
+        if not look.startswith("extended"):
             return g
         calls.append(g["gain"])
         if len(calls) == 1 or held_too:
             g = dict(g, gain=-abs(g["gain"]), ci=[-2 * abs(g["gain"]) - 1e-9, -1e-12], passes=False)
         return g
 
-    monkeypatch.setattr(P, "_confirm", confirm)
-    return calls
+    return calls, dict(confirm=confirm_stub)
 
 
 def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_references_refit_at_its_estimates(
-        tmp_path, monkeypatch):
+        tmp_path):
     """Step 7: where the fit from scratch does not beat the reference, the reference's own refit with the terms
     held at the same (joint) estimates is tried; when it confirms, it is the model handed over, still carrying the
     reported estimates; when it does not either, the terms are ambiguous and the reason gives both comparisons."""
-    import exolan.diagnose.procedure as P
-
     around = []
-    real = P._around_estimates
 
     def spy(base, fresh, flat, s, effects):
-        m = real(base, fresh, flat, s, effects)
+        m = refits.around_estimates(base, fresh, flat, s, effects)
         around.append((fresh, m))
         return m
 
-    monkeypatch.setattr(P, "_around_estimates", spy)
-    calls = _fresh_extended_loses(monkeypatch)
-    rep, _ = _linear_drive_with_rules_open(tmp_path / "a", monkeypatch)
+    calls, stubs = _fresh_extended_loses()
+    rep, _ = _linear_drive_with_rules_open(tmp_path / "a", tools=dict(stubs, around_estimates=spy))
     assert len(calls) == 2 and len(around) == 1
     assert rep["extended"]["model"].startswith("the reference's refit with the terms held")
     fresh, m = around[0]
@@ -638,8 +638,8 @@ def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_refe
         assert rep["extended"]["parameters"][f"{f['effect']}:x"] == m.estimate(f["effect"], 0)
         assert m.estimate(f["effect"], 0) == fresh.estimate(f["effect"], 0)
 
-    _fresh_extended_loses(monkeypatch, held_too=True)
-    rep, _ = _linear_drive_with_rules_open(tmp_path / "b", monkeypatch)
+    _, stubs = _fresh_extended_loses(held_too=True)
+    rep, _ = _linear_drive_with_rules_open(tmp_path / "b", tools=stubs)
     assert rep["findings"] == [] and rep["extended"]["note"].startswith("nothing found")
     amb = [e for e in rep["rejected"] if e["status"] == "ambiguous" and "joint estimates" in e["reason"]]
     assert len(amb) == 2
@@ -647,42 +647,38 @@ def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_refe
 
 
 @pytest.mark.parametrize("case", ["paired", "paired_fails", "share", "no_rescue"])
-def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_paired_over_seeds(
-        tmp_path, monkeypatch, case):
+def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_paired_over_seeds(tmp_path, case):
     """Step 7's second look at the fit from scratch: where its comparison beyond the noise between optima fails
     with a positive gain (forced), the extended model's terms, their own share of the fit clearing the floor, are
-    fitted at `n_paired` other seeds and paired with the term-free base of each seed (97.5 %, verdict forced to
-    pass): that confirms the fit from scratch, handed over. Where it fails (forced beyond the seeds' spread), or
-    the share is inside the floor (forced), or the rescue is switched off (no other seed fitted then), with the
-    reference's refit failing too (forced) the terms are ambiguous, the reason saying why."""
-    import exolan.diagnose.procedure as P
+    fitted at `n_paired` other seeds and paired with the term-free base of each seed (at its share of the
+    confirmation's level, verdict forced to pass): that confirms the fit from scratch, handed over. Where it
+    fails (forced beyond the seeds' spread), or the share is inside the floor (forced), or the second looks are
+    switched off (no other seed fitted then), with the reference's refit failing too (forced) the terms are
+    ambiguous, the reason saying why."""
+    paired_calls = []
 
-    real_confirm, real_share, real_paired, paired_calls = P._confirm, P._term_share, P._paired_confirm, []
-
-    def confirm(*a, **k):
-        g = real_confirm(*a, **k)
-        return dict(g, passes=False, gain=abs(g["gain"]) + 1e-12) if a[5] == 0.025 else g
+    def confirm_stub(*a, look="", **k):
+        g = dict(confirm(*a, **k), passes=True)
+        return dict(g, passes=False, gain=abs(g["gain"]) + 1e-12) if look.startswith("extended") else g
 
     def paired(pairs, groups, kind, s, alpha):
         paired_calls.append(len(pairs))
-        with monkeypatch.context() as m:        # its own comparison as it is
-            m.setattr(P, "_confirm", real_confirm)
-            ok = case != "paired_fails"
-            return dict(real_paired(pairs, groups, kind, s, alpha), passes=ok, passes_bound=ok)
+        ok = case != "paired_fails"
+        return dict(rules_paired(pairs, groups, kind, s, alpha), passes=ok, passes_bound=ok)
 
-    monkeypatch.setattr(P, "_confirm", confirm)
-    monkeypatch.setattr(P, "_paired_confirm", paired)
+    stubs = dict(confirm=confirm_stub, paired_confirm=paired)
     if case == "share":
-        monkeypatch.setattr(P, "_term_share", lambda *a, **k: dict(real_share(*a, **k), passes_floor=False))
+        stubs["term_share"] = lambda *a, **k: dict(rules.term_share(*a, **k), passes_floor=False)
     settings = {"rescue": False} if case == "no_rescue" else {}
-    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, **settings)
+    rep, fits = _linear_drive_with_rules_open(tmp_path, tools=stubs, **settings)
     K = Settings().n_paired + 1
     with_terms = [f for f in fits if f]
     if case == "paired":
         terms = sorted(rep["extended"]["terms"])
         assert terms and paired_calls[-1] == K
         cf = rep["extended"]["confirmation"]
-        assert cf["noise"] == f"the spread of the paired gains over {K} seeds" and cf["level"] == 0.975
+        assert cf["noise"] == f"the spread of the paired gains over {K} seeds"
+        assert cf["level"] == pytest.approx(1 - 0.05 / 3)
         assert rep["extended"]["model"].startswith("fitted from scratch with the terms")
         # the extended model's terms at the reference's seed and K - 1 more; the term-free base at those seeds
         assert sum(1 for f in with_terms if sorted(f"{a}:x" for a, _ in f) == terms) == K
@@ -700,31 +696,27 @@ def test_an_extended_model_that_fails_beyond_the_noise_between_optima_is_judged_
     assert ("within the refit noise floor (not fitted at other seeds)" in amb[0]["reason"]) is (case == "share")
 
 
-def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, monkeypatch):
-    """`_around_estimates`: the fitted base (not the fit from scratch's) is refitted once, with the reference's
-    seed offset and the terms frozen at the joint fit's values; the base and the joint fit are left as they
-    were, and the terms are free again afterwards."""
-    import exolan.diagnose.procedure as P
-
+def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm):
+    """`refits.around_estimates`: the fitted base (not the fit from scratch's) is refitted once, with the
+    reference's seed offset and the terms frozen at the joint fit's values; the base and the joint fit are left
+    as they were, and the terms are free again afterwards."""
     s = Settings(steps_base=12, steps_refit=8, hidden=8, verbose=False)
     base = make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed)
-    P.train(base, arm, 10, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
+    train(base, arm, 10, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc)
     effects = [("viscous_damping", 0), ("coulomb_friction", 1)]
-    fresh = P._fresh_fit(arm, s, effects, {"viscous_damping": 0.3, "coulomb_friction": 0.2},
-                         make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed + 5))
+    fresh = refits.fresh_fit(arm, s, effects, {"viscous_damping": 0.3, "coulomb_friction": 0.2},
+                             make_base(arm, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed + 5))
     base_before = copy.deepcopy(base.state_dict())
     fresh_before = copy.deepcopy(fresh.state_dict())
     calls = []
-    real = P.train
 
     def spy(model, flat, steps, **kw):
         calls.append(dict(free=[p.requires_grad for p in model.ext_parameters()], seed=kw["seed"], steps=steps,
                           same_base=all(torch.equal(a, b) for a, b in
                                         zip(model.base.state_dict().values(), base_before.values()))))
-        return real(model, flat, steps, **kw)
+        return train(model, flat, steps, **kw)
 
-    monkeypatch.setattr(P, "train", spy)
-    m = P._around_estimates(base, fresh, arm, s, effects)
+    m = refits.around_estimates(base, fresh, arm, s, effects, trainer=spy)
     assert len(calls) == 1 and calls[0]["same_base"] and not any(calls[0]["free"])
     assert calls[0]["seed"] == s.seed + 1 and calls[0]["steps"] == s.steps_refit     # the reference's refit
     for eff, j in effects:
@@ -735,58 +727,43 @@ def test_the_references_refit_with_the_terms_held_at_the_joint_estimates(arm, mo
     assert all(p.requires_grad for p in m.ext_parameters())
 
 
-def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_and_judged_paired(
-        tmp_path, monkeypatch):
+def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_and_judged_paired(tmp_path):
     """Rescue (step 2): where a friction's warm refit fails rule 2 (forced here), the term is fitted from scratch
     at the reference's seed and at `n_paired` other seeds (the optimum twins' first, the term-free base fitted at
-    the rest once), each fit paired with the term-free base of its seed (`_paired_confirm`, 97.5 %). When that
-    passes (forced), the fit at the reference's seed stands in for the
-    candidate: its estimate, its gains and the extended model (the same cached fit, confirmed by the same paired
-    comparison), the warm fit kept beside it; when it fails, the candidate stays rejected with the comparison
-    on record. Where the term's own share of its fit at the reference's seed fails the floor (forced), no other
-    seed is fitted."""
-    import exolan.diagnose.procedure as P
+    the rest once), each fit paired with the term-free base of its seed (`paired_confirm`, at the half of the
+    candidate's Bonferroni level that its second look gets). When that passes (forced), the fit at the
+    reference's seed stands in for the candidate: its estimate, its gains and the extended model (the same cached
+    fit, confirmed by the same paired comparison), the warm fit kept beside it; when it fails, the candidate stays
+    rejected with the comparison on record. Where the term's own share of its fit at the reference's seed fails
+    the floor (forced), no other seed is fitted."""
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
-    # rule 2 fails the warm refits (forced); a rescued term's own share is judged by the real floor
-    real_above, real_share, sharing = P._above_noise, P._term_share, []
-    monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05:
-                        bool(sharing) and real_above(g, sigma, seed, alpha))
-
-    def term_share(*a, **k):
-        sharing.append(True)
-        try:
-            out = real_share(*a, **k)
-        finally:
-            sharing.pop()
-        return dict(out, passes_floor=False) if verdict == "share" else out
-
-    monkeypatch.setattr(P, "_term_share", term_share)
-    monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
-    spread = P._spread
-    monkeypatch.setattr(P, "_spread", lambda *a, **k: dict(spread(*a, **k), passes=True))
     seen, fits = [], []
-    real_paired, real_fresh = P._paired_confirm, P._fresh_fit
 
     def fresh(flat, s, effects, init, start, confused=None):
-        m = real_fresh(flat, s, effects, init, start, confused=confused)
+        m = refits.fresh_fit(flat, s, effects, init, start, confused=confused)
         fits.append((tuple(e for e, _ in effects), s.seed, m))
         return m
 
-    monkeypatch.setattr(P, "_fresh_fit", fresh)
     trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0)
     K = Settings().n_paired + 1
     for verdict in (True, False, "share"):
         def paired(pairs, groups, kind, s, alpha):
-            g = real_paired(pairs, groups, kind, s, alpha)
+            g = rules_paired(pairs, groups, kind, s, alpha)
             seen.append(dict(alpha=alpha, pairs=pairs, g=g))
             return dict(g, passes=verdict, user_gain=1.0)
 
-        monkeypatch.setattr(P, "_paired_confirm", paired)
+        share = (lambda *a, **k: dict(rules.term_share(*a, **k), passes_floor=False)) if verdict == "share" else \
+            rules.term_share
+        # rule 2 fails the warm refits (forced); a rescued term's own share is judged by the real floor
+        tools = Tools(above_noise=lambda g, sigma, seed=0, alpha=0.05: False, term_share=share,
+                      user_improves=lambda before, after: True, fresh_fit=fresh, paired_confirm=paired,
+                      invariance=lambda *a, **k: dict(invariance_rule(*a, **k), passes=True))
         seen.clear(), fits.clear()
-        rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
-                       effects=("viscous_damping", "coulomb_friction"), verbose=False)
+        rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60,
+                       physics_first=False, effects=("viscous_damping", "coulomb_friction"), verbose=False,
+                       tools=tools)
         tried = {e["effect"]: e for e in rep["findings"] + rep["rejected"] if "from_scratch" in e}
         # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison, and at
         # the paired comparison's further seeds once when one is made
@@ -794,7 +771,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         if any("decision_gain" in e["from_scratch"] for e in tried.values()):
             n_free = max(n_free, K - 1)
         assert [f[:2] for f in fits if not f[0]] == [((), 1000 * k) for k in range(1, n_free + 1)]
-        assert "viscous_damping" in tried and all(c["alpha"] == 0.025 for c in seen)
+        assert "viscous_damping" in tried and all(c["alpha"] == pytest.approx(0.05 / 2 / 2) for c in seen)
         if verdict == "share":
             # the term's share fails at the reference's seed (forced): no other seed is fitted, no paired comparison
             assert not seen and rep["findings"] == [] and n_free == Settings().n_optima
@@ -854,7 +831,7 @@ def test_the_paired_comparison_over_seeds_needs_every_seed_and_measures_their_sp
     """`_paired_confirm`: the gain is the seeds' mean paired gain; its noise beside the samples' is the SE of that
     mean over seeds (the twins it builds have exactly that RMS), per task and combined; a comparison whose
     mean is large but one of whose seeds loses fails, and so does one whose seeds disagree widely."""
-    from exolan.diagnose.procedure import _paired_confirm
+    from exolan.diagnose.secondlook import paired_confirm as _paired_confirm
 
     rng = np.random.default_rng(3)
     s = Settings(n_boot=200)
@@ -886,7 +863,7 @@ def test_a_terms_own_share_must_clear_the_refit_noise_floor():
     """`_term_share`: what a model's terms alone are worth to it (the model with them switched off against the
     model) is judged as rule 2 judges a warm refit's gain: a steady share well inside the refit noise σ_r fails
     however narrow its sampling interval, the same share far above σ_r passes."""
-    from exolan.diagnose.procedure import _term_share
+    from exolan.diagnose.rules import term_share as _term_share
 
     rng = np.random.default_rng(4)
     s = Settings(n_boot=200)
@@ -897,14 +874,14 @@ def test_a_terms_own_share_must_clear_the_refit_noise_floor():
     assert _term_share(off, e_with, 1e-6, s)["passes_floor"] and small["refit_noise"] == 7.5e-6
 
 
-def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path, monkeypatch):
+def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the_extended_model(tmp_path):
     """Rule 4 once more in the joint from-scratch fit: an accepted term whose parameter that fit does not
     identify is reported as ambiguous, and the extended model is fitted again without it (rules forced open
     so that two terms are accepted; the joint fit's CI of the Coulomb force forced to reach 0)."""
     def vague_coulomb(effect, pci):
         return dict(pci, ci=[-1.0, pci["estimate"] + 1.0]) if effect == "coulomb_friction" else pci
 
-    rep, fits = _linear_drive_with_rules_open(tmp_path, monkeypatch, joint_ci=vague_coulomb)
+    rep, fits = _linear_drive_with_rules_open(tmp_path, joint_ci=vague_coulomb)
     coulomb = next(e for e in rep["rejected"] if e["effect"] == "coulomb_friction")
     assert coulomb["status"] == "ambiguous" and "does not identify it" in coulomb["reason"]
     assert [f["effect"] for f in rep["findings"]] == ["viscous_damping"]
@@ -916,7 +893,10 @@ def test_a_term_the_joint_fit_does_not_identify_is_ambiguous_and_left_out_of_the
 def test_a_reported_interval_ends_where_the_parameters_space_ends():
     """A damping, friction or delay cannot be negative: a widened interval is cut at 0; an offset, bias or gain
     keeps its interval as it is, and a strap's k (already ending at ∞) too."""
-    from exolan.diagnose.procedure import _within_bounds
+    from exolan.diagnose.candidates import LIBRARY
+
+    def _within_bounds(effect, ci):
+        return LIBRARY[effect].within_bounds(ci)
 
     for effect in ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay"):
         assert _within_bounds(effect, [-0.1, 3.4]) == [0.0, 3.4]
@@ -935,15 +915,15 @@ def test_task_invariance_identification_is_family_wise():
     quiet = [np.full(groups.size, 1e-6)] * 3
     se = dict(walk=0.072, squat=0.39, calisthenics=0.067, rest=0.13)
     weak = _by_group(dict(walk=0.2, squat=0.49, calisthenics=0.49, rest=0.286), se)
-    one = _spread(d, groups, "task", s, twins=quiet, by_group=weak, param_path=False, family=1)
-    many = _spread(d, groups, "task", s, twins=quiet, by_group=weak, param_path=False, family=16)
+    one = invariance_rule(d, groups, "task", s, twins=quiet, by_group=weak, param_path=False, family=1)
+    many = invariance_rule(d, groups, "task", s, twins=quiet, by_group=weak, param_path=False, family=16)
     assert one["theta_rest_z"] == pytest.approx(2.2) and one["identification_z"] == pytest.approx(1.96, abs=1e-3)
     assert one["passes"] and one["rest_identifies"]
     assert many["identification_z"] == pytest.approx(2.955, abs=1e-3)
     assert not many["passes"] and not many["rest_identifies"] and "16 candidates" in many["note"]
-    assert "2.2 SEs from its no-effect value (not identified: 2.96 needed" in _invariance_reason(many)
+    assert "2.2 SEs from its no-effect value (not identified: 2.96 needed" in invariance_reason(many)
     strong = _by_group(dict(walk=0.41, squat=2.1, calisthenics=0.48, rest=0.6), dict(se, rest=0.6 / 6.6))
-    res = _spread(d, groups, "task", s, twins=quiet, by_group=strong, param_path=False, family=16)
+    res = invariance_rule(d, groups, "task", s, twins=quiet, by_group=strong, param_path=False, family=16)
     assert res["passes"] and res["rest_identifies"]
 
 
@@ -958,7 +938,7 @@ def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
         t.tau_e = np.zeros_like(t.tau)
         t.tau_e[lag:] = 0.3 * t.tau[:-lag] + rng.normal(0, 0.05, (t.tau.shape[0] - lag, 2))
     flat = prepare(trials)
-    assert _track_lag(flat, 0) == lag and _track_lag(flat, 1) == lag
+    assert track_lag(flat, 0) == lag and track_lag(flat, 1) == lag
 
 
 def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_own_variation():
@@ -1005,23 +985,24 @@ def _assisted_pair(share: float, own_sd: float, seed: int):
     return prepare(trials)
 
 
-def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(monkeypatch):
+def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation():
     """|1 − 1/k| below which a gain cannot show: set by the exo torque's own variation (not its copy of the joint
     torque), the model's misfit and the refit noise. Checked against the closed forms of its two regimes."""
-    from exolan.diagnose import procedure as P
+    from exolan.diagnose import limits as P
+    from exolan.diagnose.fit import exo_copy
 
     sigma_eps = 0.02                                         # the model's white misfit, N m/kg
     eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
-    monkeypatch.setattr(P, "predict", lambda model, flat, idx: flat.tau[idx] - eps[idx] * flat.mass[idx, None])
-    s = P.Settings(n_boot=300)
+    predict = lambda model, flat, idx: flat.tau[idx] - eps[idx] * flat.mass[idx, None]    # noqa: E731
+    s = Settings(n_boot=300)
     lim = {}
     for own_sd in (1.0, 2.0):
         flat = _assisted_pair(share=0.2, own_sd=own_sd, seed=3)
         held = flat.index("held")
-        out = P.gain_detection_limit(flat, None, held, None, 0.0, s)
+        out = P.gain_detection_limit(flat, None, held, None, 0.0, s, predict)
         assert set(out) == {"hip"}                           # the knee has no exo torque
         v = out["hip"]
-        own = (flat.tau_e[held, 0] - P.exo_copy(flat, 0).tau_e[held, 0]).numpy() / 70.0
+        own = (flat.tau_e[held, 0] - exo_copy(flat, 0).tau_e[held, 0]).numpy() / 70.0
         P_own = np.mean(own ** 2)
         # sampling-dominated (σ_r = 0): a = 2·1.96·SE(o ε)/P with SE ≈ rms(o) σ_ε / √N for a white ε
         expect = 2 * 1.96 * np.sqrt(P_own) * sigma_eps / np.sqrt(len(held)) / P_own
@@ -1030,7 +1011,7 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
         assert np.isclose(1 - 1 / v["k_above"], v["theta_limit"]) and np.isclose(1 / v["k_below"] - 1, v["theta_limit"])
         assert 0.5 < v["copy_share"] < 0.99 and v["rms_own"] < v["rms_exo"]
         # refit-noise-dominated: a → √(1.96 σ_r / P)
-        big = P.gain_detection_limit(flat, None, held, None, 1e-2, s)["hip"]["theta_limit"]
+        big = P.gain_detection_limit(flat, None, held, None, 1e-2, s, predict)["hip"]["theta_limit"]
         assert abs(big / np.sqrt(1.96 * 1e-2 / P_own) - 1) < 0.05
         lim[own_sd] = v["theta_limit"]
     # twice the controller's own variation: half the limit (its copy share alone would not tell)
@@ -1038,18 +1019,18 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
     # a gain in the data leaves part of θ o in the reference's residual: the limit is that of the data without
     # it, not inflated by the effect it is to detect
     flat = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
-    own_all = (flat.tau_e[:, 0] - P.exo_copy(flat, 0).tau_e[:, 0]) / flat.mass
+    own_all = (flat.tau_e[:, 0] - exo_copy(flat, 0).tau_e[:, 0]) / flat.mass
     with_gain = eps.clone()
     with_gain[:, 0] += 0.3 * own_all
-    monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - with_gain[idx] * f.mass[idx, None])
-    v = P.gain_detection_limit(flat, None, flat.index("held"), None, 0.0, s)["hip"]
+    predict = lambda model, f, idx: f.tau[idx] - with_gain[idx] * f.mass[idx, None]    # noqa: E731
+    v = P.gain_detection_limit(flat, None, flat.index("held"), None, 0.0, s, predict)["hip"]
     assert abs(v["theta_limit"] / lim[1.0] - 1) < 0.05
 
 
 def test_the_injected_limit_scales_the_injections_gain_as_theta_squared():
     """u = (θ/θ0)²: the test's bound u g0 = 1.96 √(u se0² + σ_r²). Sampling-dominated, √u = 1.96 se0 / g0; refit-
     noise-dominated, u = 1.96 σ_r / g0; an injection that did not show gives no limit."""
-    from exolan.diagnose.procedure import _injected_limit
+    from exolan.diagnose.limits import injected_limit as _injected_limit
 
     assert _injected_limit(4 * 1.96 * 1e-5, 1e-5, 0.0, 0.6) == pytest.approx(0.15)
     assert _injected_limit(1.96e-4, 0.0, 1e-5, 0.4) == pytest.approx(0.4 * math.sqrt(0.1))
@@ -1061,26 +1042,27 @@ def test_the_injected_limit_scales_the_injections_gain_as_theta_squared():
 
 
 def test_the_limits_by_injection_write_a_known_gain_and_delay_into_data_cleaned_of_the_own_variations_share(
-        small_world, monkeypatch):
+        small_world):
     """Mechanics of `limits_by_injection` (fits made no-ops): the base is fitted on the recorded joint torque less
     the share of the controller's own variation o (and of its rate ȯ) that the reference leaves (0.3 o + 0.002 ȯ
     here), plus θ0 τ_e (a gain) and τ_e(t) − τ_e(t − d0) (a delay), θ0 and d0 twice the computed limits; a limit
     far from its injection is measured again by a second injection at 1.2 times it."""
     from exolan.data import savgol_derivative
-    from exolan.diagnose import procedure as P
+    from exolan.diagnose import limits as P
+    from exolan.diagnose.fit import exo_copy
+    from exolan.diagnose.procedure import load_trials
 
-    flat = prepare(P.load_trials(small_world))
+    flat = prepare(load_trials(small_world))
     held = flat.index("held")
     split = lambda x: torch.split(x, [int(n) for n in flat.lengths])
-    own = {j: flat.tau_e[:, j] - P.exo_copy(flat, j).tau_e[:, j] for j in range(2)}
+    own = {j: flat.tau_e[:, j] - exo_copy(flat, j).tau_e[:, j] for j in range(2)}
     rate = {j: torch.as_tensor(np.concatenate([savgol_derivative(seg.numpy().astype(np.float64), flat.dt)
                                                for seg in split(own[j])]), dtype=flat.tau.dtype) for j in range(2)}
     left = torch.stack([0.3 * own[j] + 0.002 * rate[j] for j in range(2)], 1)
-    monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - left[idx])
     fitted = []
-    monkeypatch.setattr(P, "train", lambda model, f, *a, **k: fitted.append(f.tau.clone()))
-    monkeypatch.setattr(P, "_refit", lambda *a, **k: None)
-    monkeypatch.setattr(P, "screen", lambda *a, **k: {})       # the terms start at their defaults (delay: one sample)
+    stubs = dict(predict=lambda model, f, idx: f.tau[idx] - left[idx],
+                 train=lambda model, f, *a, **k: fitted.append(f.tau.clone()), refit=lambda *a, **k: None,
+                 screen=lambda *a, **k: {})       # the terms start at their defaults (delay: one sample)
     s = Settings(n_boot=100, hidden=8, verbose=False)
     base = make_base(flat, hidden=8)
     analytic = {"torque_gain": {"hip": dict(theta_limit=0.15), "knee": dict(theta_limit=0.3)},
@@ -1095,11 +1077,8 @@ def test_the_limits_by_injection_write_a_known_gain_and_delay_into_data_cleaned_
 
     def limits(scale, **kw):
         fitted.clear()
-        real = P._injected_limit
-        monkeypatch.setattr(P, "_injected_limit", lambda g0, se0, sr, th0: scale(th0))
-        out = P.limits_by_injection(flat, s, base, base, held, 1e-6, analytic, **kw)
-        monkeypatch.setattr(P, "_injected_limit", real)
-        return out
+        fits = P.InjectionFits(injected_limit=lambda g0, se0, sr, th0: scale(th0), **stubs)
+        return P.limits_by_injection(flat, s, base, base, held, 1e-6, analytic, fits=fits, **kw)
 
     tol = lambda j: 2e-3 * float(flat.tau[:, j].abs().max())
     out = limits(lambda th0: th0)            # every limit lies at its injection: one fit
@@ -1132,44 +1111,45 @@ def test_the_limits_by_injection_write_a_known_gain_and_delay_into_data_cleaned_
                                                                                   "actuation_delay": {}}
 
 
-def test_the_delays_detection_limit_follows_the_rate_of_the_controllers_own_variation(monkeypatch):
+def test_the_delays_detection_limit_follows_the_rate_of_the_controllers_own_variation():
     """The shortest delay d that can show: the gain's arithmetic with the rate ȯ of the controller's own
     variation in place of o (a delay changes the joint torque by τ_e(t) − τ_e(t−d) ≈ d τ̇_e). Checked against the
     sampling-dominated closed form, and a faster own variation (same size) gives a shorter limit; the torque
     sensor's white noise, which a delay shifts without identifying anything, hardly moves it."""
     from exolan.data import savgol_derivative
-    from exolan.diagnose import procedure as P
+    from exolan.diagnose import limits as P
+    from exolan.diagnose.fit import exo_copy
 
     sigma_eps = 0.02
     eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
-    monkeypatch.setattr(P, "predict", lambda model, flat, idx: flat.tau[idx] - eps[idx] * flat.mass[idx, None])
-    s = P.Settings(n_boot=300)
+    predict = lambda model, flat, idx: flat.tau[idx] - eps[idx] * flat.mass[idx, None]    # noqa: E731
+    s = Settings(n_boot=300)
     flat = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
     held = flat.index("held")
-    out = P.delay_detection_limit(flat, None, held, None, 0.0, s)
+    out = P.delay_detection_limit(flat, None, held, None, 0.0, s, predict)
     assert set(out) == {"hip"}
     v = out["hip"]
-    own = (flat.tau_e[:, 0] - P.exo_copy(flat, 0).tau_e[:, 0]).numpy()
+    own = (flat.tau_e[:, 0] - exo_copy(flat, 0).tau_e[:, 0]).numpy()
     rate = np.concatenate([savgol_derivative(x, flat.dt) for x in np.split(own, np.cumsum(flat.lengths)[:-1])])
     x = rate[held.numpy()] / 70.0
     P_rate = np.mean(x ** 2)
     expect = 2 * 1.96 * np.sqrt(P_rate) * sigma_eps / np.sqrt(len(held)) / P_rate
     assert 0.75 * expect < v["d_limit"] < 1.33 * expect
     # the gain's limit on the same data is in other units (θ = 1 − 1/k) and set by o, not ȯ
-    g = P.gain_detection_limit(flat, None, held, None, 0.0, s)["hip"]
+    g = P.gain_detection_limit(flat, None, held, None, 0.0, s, predict)["hip"]
     assert g["rms_own"] == v["rms_own"] and g["theta_limit"] != v["d_limit"]
     # the same own variation, smoothed less (faster): its rate is larger, the delay limit shorter
     fast = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
     for t0, T in zip(np.cumsum([0] + list(fast.lengths[:-1])), fast.lengths):
         o = own[t0:t0 + T]
         fast.tau_e[t0:t0 + T, 0] += torch.as_tensor(np.gradient(o) * 3.0, dtype=fast.tau_e.dtype)
-    assert P.delay_detection_limit(fast, None, held, None, 0.0, s)["hip"]["d_limit"] < v["d_limit"]
+    assert P.delay_detection_limit(fast, None, held, None, 0.0, s, predict)["hip"]["d_limit"] < v["d_limit"]
     # white sensor noise of 5 % of the own variation's size: a central difference read it as rate and shortened
     # the limit by 24 % (0.0120 to 0.0091 s); the data's derivative filter by 6 %
     noisy = _assisted_pair(share=0.2, own_sd=1.0, seed=3)
     noisy.tau_e[:, 0] += torch.as_tensor(np.random.default_rng(9).normal(0, 0.05 * own.std(), len(own)),
                                          dtype=noisy.tau_e.dtype)
-    d_noisy = P.delay_detection_limit(noisy, None, held, None, 0.0, s)["hip"]["d_limit"]
+    d_noisy = P.delay_detection_limit(noisy, None, held, None, 0.0, s, predict)["hip"]["d_limit"]
     assert d_noisy > 0.8 * v["d_limit"]
 
 
@@ -1288,7 +1268,7 @@ def test_a_term_outdone_by_an_exo_driven_rival_that_failed_its_null_is_rejected(
     """Rule 6 with a doubted rival: a hip strap that passes alone is rejected where a hip torque gain describes
     the held-out data better but failed its null; not where the gain failed another rule too, nor where the two
     cannot be separated, nor for a damping whose rival delay failed its null (a damping is not exo-driven)."""
-    from exolan.diagnose.procedure import Settings, _gain, outdone_by_a_doubted_rival
+    from exolan.diagnose.nulls import outdone_by_a_doubted_rival
 
     rng = np.random.default_rng(0)
     e0 = 1.0 + rng.random(3000)
@@ -1303,7 +1283,7 @@ def test_a_term_outdone_by_an_exo_driven_rival_that_failed_its_null_is_rejected(
         errs = {("strap_compliance", "hip"): e0 - 0.05, ("torque_gain", "hip"): rival_errors,
                 ("viscous_damping", "knee"): e0 - 0.05, ("actuation_delay", "knee"): e0 - 0.4}
         outdone_by_a_doubted_rival(res, lambda eff, nm: errs.get((eff, nm)),
-                                   lambda a, b: _gain(a, b, Settings(n_boot=200)))
+                                   lambda a, b: paired_gain(a, b, Settings(n_boot=200)))
         return {(e["effect"], e["joint"]): e for e in res}
 
     out = verdicts(e0 - 0.4)
@@ -1337,13 +1317,13 @@ def test_rule_3s_future_torque_null_for_a_delay_reaches_no_causal_delay():
     """The delay term on the exo torque taken L samples ahead applies τ_e(t + L − d). Free up to max_delay
     (100 ms) with L = 80 ms, that null reaches a causal delay of 20 ms — the effect under test; held at d ≤ L
     its applied torque is at most the present one."""
-    from exolan.diagnose import procedure as P
+    from exolan.diagnose.nulls import future_null
 
     flat = _assisted_pair(share=0.3, own_sd=2.0, seed=5)
     base = make_base(flat, hidden=8)
     s = Settings(max_delay=0.1)
     lag = 16                                                 # 80 ms at 200 Hz
-    null, adv, what, _ = P._future_null(base, flat, dict(effect="actuation_delay"), 0, lag, s)
+    null, adv, what, _ = future_null(base, flat, dict(effect="actuation_delay"), 0, lag, s)
     free = extend(base, adv, [("actuation_delay", 0)], max_delay=s.max_delay)
     assert what["future_lag_s"] == pytest.approx(0.08)
     rows = torch.arange(100, flat.lengths[0] - 100)         # inside the first trial: nothing clamped
@@ -1363,7 +1343,7 @@ def test_the_own_variation_null_asks_for_a_gain_on_the_same_side_of_1():
     """Rule 3's own-variation null for a torque gain passes only when its gain beats the reference beyond the
     refit noise and its k lies on the same side of 1 as the whole term's (a spurious clean-world hip gain of
     1.295 beside an own-variation k of 0.845 is not a sensor's scale error)."""
-    from exolan.diagnose.procedure import _own_variation_passes
+    from exolan.diagnose.rules import own_variation_passes as _own_variation_passes
 
     rng = np.random.default_rng(0)
     g = dict(gain=3e-5, ci=[1e-5, 5e-5], draws=rng.normal(3e-5, 1e-5, 2000))
@@ -1375,11 +1355,11 @@ def test_the_own_variation_null_asks_for_a_gain_on_the_same_side_of_1():
     assert not _own_variation_passes(dict(g, ci=[-1e-6, 5e-5]), 1e-6, 1.39, 1.87)
 
 
-def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(monkeypatch):
+def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it():
     """An effect of one user only (a knee damping of 2 N m s/rad in S01, none in S02): the post-hoc θ by subject
     on the training rows differs (Cochran's Q) and only S01's clears its Bonferroni z, so the term is gated to
     S01's trials. The same damping in both users, or in neither, keeps the pooled term (None)."""
-    from exolan.diagnose import procedure as P
+    from exolan.diagnose.subjects import gated, subject_form
 
     rng = np.random.default_rng(4)
     trials = []
@@ -1392,57 +1372,61 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it(mo
     flat = prepare(trials)
     s01 = torch.as_tensor(np.array([flat.trial_meta[i]["subject"] == "S01" for i in flat.trial.numpy()]))
 
+    residual = {}
+
+    def predict(model, f, idx):
+        return f.tau[idx] - residual["now"][idx]
+
     def with_residual(b01, b02):
         resid = torch.zeros_like(flat.tau)
         resid[:, 1] = torch.where(s01, b01, b02).to(flat.tau.dtype) * flat.qd[:, 1]
         resid += torch.as_tensor(rng.normal(0, 0.05, resid.shape), dtype=resid.dtype) * flat.mass[:, None]
-        monkeypatch.setattr(P, "predict", lambda model, f, idx: f.tau[idx] - resid[idx])
+        residual["now"] = resid
 
     with_residual(2.0, 0.0)
-    form = P.subject_form(None, flat, "viscous_damping", 1, {})
+    form = subject_form(None, flat, "viscous_damping", 1, {}, predict=predict)
     assert form is not None and form["subjects"] == ["S01"]
     assert form["theta_by_subject"]["S01"]["theta"] == pytest.approx(2.0, rel=0.05)
     assert form["heterogeneity"]["p"] < 1e-6
     on = np.array([m["subject"] == "S01" for m in flat.trial_meta], dtype=float)
     np.testing.assert_array_equal(form["trials"], on)
-    # the gate reaches the model through the init of every fit (`_gated`), and only for this candidate's joint
-    init = P._gated({"viscous_damping": 1.0}, {"effect": "viscous_damping", "_subject_form": form}, 1)
+    # the gate reaches the model through the init of every fit (`subjects.gated`), and only for this candidate's joint
+    init = gated({"viscous_damping": 1.0}, form, "viscous_damping", 1)
     ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)], init=init)
     assert ext.gated == ("viscous_damping",)
     np.testing.assert_array_equal(ext.gate_trials()["viscous_damping"][1], on)
-    assert P._gated({"x": 1}, {"effect": "viscous_damping"}, 1) == {"x": 1}
+    assert gated({"x": 1}, None, "viscous_damping", 1) == {"x": 1}
     # a damping is linear in its parameter: the same data also propose every subject at their own size
     assert form["users"] == ["S01", "S02"]
     np.testing.assert_array_equal(form["subject_of_trial"], [0 if m["subject"] == "S01" else 1 for m in flat.trial_meta])
     # both subjects with a damping of different sizes: no switch, only the sizes
     with_residual(2.0, 0.8)
-    form = P.subject_form(None, flat, "viscous_damping", 1, {})
+    form = subject_form(None, flat, "viscous_damping", 1, {}, predict=predict)
     assert "subjects" not in form and form["users"] == ["S01", "S02"]
     sized = dict(form, kind="sizes", log_sizes=[0.45, -0.45])
-    init = P._gated({"viscous_damping": 1.0}, {"effect": "viscous_damping", "_subject_form": sized}, 1)
+    init = gated({"viscous_damping": 1.0}, sized, "viscous_damping", 1)
     ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)], init=init)
     assert ext.sized == ("viscous_damping",) and not ext.switched
     np.testing.assert_allclose(ext.size_values()["viscous_damping"][1], [0.45, -0.45], atol=1e-12)
     for b01, b02 in ((2.0, 2.0), (0.0, 0.0)):
         with_residual(b01, b02)
-        assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None, (b01, b02)
+        assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None, (b01, b02)
     # a residual asking for negative damping in S01: no physical term to gate
     with_residual(-2.0, 0.0)
-    assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
+    assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None
     # recordings whose "subject" is their file's name (layout 2 without one) are not users: no gate
     with_residual(2.0, 0.0)
     for m in flat.trial_meta:
         m["name"] = m["subject"]
-    assert P.subject_form(None, flat, "viscous_damping", 1, {}) is None
+    assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None
 
 
-def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path, monkeypatch):
+def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path):
     """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
     term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
     and compared there; the sizes start equal. The form taken is the extended model (no third fit from scratch)
     and the report says how the forms were compared. Rules forced open: the sizes win; then the switch wins
     where the sizes' fit from scratch does not beat it, and where it does but fails rule 5 against it."""
-    import exolan.diagnose.procedure as P
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 
@@ -1460,34 +1444,27 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
                     trials=np.array([float(m["subject"] == "S02") for m in flat.trial_meta]), users=users,
                     subject_of_trial=np.array([users.index(m["subject"]) for m in flat.trial_meta]))
 
-    monkeypatch.setattr(P, "subject_form", both_forms)
-    monkeypatch.setattr(P, "_user_improves", lambda before, after: True)
-    spread = P._spread
     n = {}
 
     def rule5(*a, **k):     # open, but for the sizes-against-switch comparison where `n["fail_next"]` says so
         fail, n["fail_next"] = n.get("fail_next", False), False
-        return dict(spread(*a, **k), passes=not fail)
+        return dict(invariance_rule(*a, **k), passes=not fail)
 
-    monkeypatch.setattr(P, "_spread", rule5)
     fits = []
-    real_fresh = P._fresh_fit
 
     def recorded(flat, s, effects, init, start, confused=None):
-        m = real_fresh(flat, s, effects, init, start, confused=confused)
+        m = refits.fresh_fit(flat, s, effects, init, start, confused=confused)
         if effects:                 # not the term-free twins of the noise between optima
             fits.append((init, m))
         return m
 
-    monkeypatch.setattr(P, "_fresh_fit", recorded)
-    real_gain = P._gain
 
     def run(out, sizes_win: bool, task_bound: bool = False):
         fits.clear()
         n["fresh"] = 0
 
         def gain(e_ref, e_new, s, seed=0, alpha=0.05):
-            g = real_gain(e_ref, e_new, s, seed=seed, alpha=alpha)
+            g = paired_gain(e_ref, e_new, s, seed=seed, alpha=alpha)
             # the comparison of the two fits from scratch: sizes against switch
             if len(fits) == 2 and n["fresh"] == 0:
                 n["fresh"] += 1
@@ -1495,10 +1472,11 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
                 g = dict(g, forced=True) if sizes_win else dict(g, draws=None)
             return g
 
-        monkeypatch.setattr(P, "_gain", gain)
-        monkeypatch.setattr(P, "_above_noise", lambda g, sigma, seed=0, alpha=0.05: g.get("draws", 0) is not None)
+        tools = Tools(subject_form=both_forms, user_improves=lambda before, after: True, invariance=rule5,
+                      fresh_fit=recorded, gain=gain,
+                      above_noise=lambda g, sigma, seed=0, alpha=0.05: g.get("draws", 0) is not None)
         return diagnose(trials, out=out, quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
-                        effects=("viscous_damping",), verbose=False)
+                        effects=("viscous_damping",), verbose=False, tools=tools)
 
     rep = run(tmp_path / "a", sizes_win=True)
     assert len(fits) == 2                       # the two forms; the taken one is the extended model
@@ -1531,10 +1509,11 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
 
 
 def test_a_sized_terms_value_by_subject_is_its_subjects_own():
-    """`_param_by_subject`: θ_u = θ e^{a_u} of a sized term for each subject, with an interval from that subject's
+    """`inference.param_by_subject`: θ_u = θ e^{a_u} of a sized term for each subject, with an interval from that subject's
     training rows that holds it when the recorded torque is the model's own (plus noise); a stiffness is
     reported as k."""
-    from exolan.diagnose import procedure as P
+    from exolan.diagnose.fit import predict
+    from exolan.diagnose.inference import param_by_subject
 
     trials = []
     for subj in ("S01", "S02"):
@@ -1547,9 +1526,9 @@ def test_a_sized_terms_value_by_subject_is_its_subjects_own():
                  init={"viscous_damping": 1.5, "sized": {"viscous_damping": {1: [0.3, -0.3]}}, "subject_of_trial": sub})
     rng = np.random.default_rng(0)
     with torch.no_grad():
-        tau = P.predict(ext, flat, torch.arange(flat.q.shape[0]))
+        tau = predict(ext, flat, torch.arange(flat.q.shape[0]))
     flat.tau = tau + torch.as_tensor(rng.normal(0, 0.02, tau.shape), dtype=tau.dtype) * flat.mass[:, None]
-    by = P._param_by_subject(ext, flat, "viscous_damping", 1, ["S01", "S02"])
+    by = param_by_subject(ext, flat, "viscous_damping", 1, ["S01", "S02"])
     for u, a in (("S01", 0.3), ("S02", -0.3)):
         assert by[u]["estimate"] == pytest.approx(1.5 * math.exp(a), rel=1e-6)
         assert by[u]["size"] == pytest.approx(math.exp(a), rel=1e-6)     # float32 models

@@ -14,7 +14,7 @@ directory for diagnosis.json, diagnosis.md, the plots and (when something is acc
 model's `ext.*` tensors. `quick=True` uses short fits (tests); keyword `settings` overrides any
 `procedure.Settings` field.
 
-The procedure and its decision rule are documented in `exolan.diagnose.procedure`; the candidate library
+The procedure is `exolan.diagnose.procedure` (its steps in their own modules) and its decision rule is in docs/DIAGNOSIS.md; the candidate library
 in `exolan.diagnose.candidates`.
 """
 from __future__ import annotations
@@ -70,6 +70,7 @@ def _diagnose(data, model=None, out=None, quick: bool = False, **settings) -> di
 
     cfg = dict(QUICK) if quick else {}
     cfg.update(settings)
+    tools = cfg.pop("tools", None)      # stubs for the learned path's fits and judgements (tests)
     s = Settings(**cfg)
     trials = load_trials(data)
     base = None
@@ -78,7 +79,7 @@ def _diagnose(data, model=None, out=None, quick: bool = False, **settings) -> di
             from ..train import load_run
             model, _meta = load_run(model)
         base = _pooled_base(model, trials, pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
-    res = run(None, model=base, settings=s, trials_loaded=trials)
+    res = run(None, model=base, settings=s, trials_loaded=trials, tools=tools)
     if out is not None:
         out = Path(out)
         rep = _report.write(out, res)

@@ -17,11 +17,39 @@ tested on data without one.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
+
+
+def _start_positive(th: float, sc: dict) -> dict:
+    return {"value": th} if th > 0 else {}
+
+
+def _start_any(th: float, sc: dict) -> dict:
+    return {"value": th}
+
+
+def _start_gain(th: float, sc: dict) -> dict:
+    return {"value": 1.0 / (1.0 - th)} if th < 0.9 else {}
+
+
+def _start_inverse(th: float, sc: dict) -> dict:
+    return {"value": 1.0 / th} if th > 0 else {}
+
+
+def _start_delay(th: float, sc: dict) -> dict:
+    return {"value": sc["d"]} if "d" in sc else {}
 
 
 @dataclass(frozen=True)
 class Candidate:
+    """One effect of the vocabulary and its own behaviour in the diagnosis: how its parameter is read off a
+    fitted `ExtendedModel` (`theta`), started from the post-hoc screen (`start`), reported (a strap's θ is its
+    compliance, reported as k = 1/θ: `inverse`), bounded (`positive`, a delay by the largest delay searched:
+    `bounded_by_max_delay`), which nulls it faces (`needs_exo`; a gain, which has no lag of its own, also at
+    the controller's tracking lag and on its own variation: `lag_free`), which shape parameter it carries
+    (`shape`: Stribeck's vs), which effects it mimics without a term (`mimics`: backlash) and which detection
+    limit warns that it reads short (`limit_key`)."""
     effect: str
     meaning: str
     sign: str                     # the physically valid sign of the reported parameter
@@ -31,33 +59,90 @@ class Candidate:
     neutral: float                # parameter value of "no effect"
     needs_exo: bool = False
     positive: bool = False        # the parameter must be > neutral (dissipation, delay, stiffness)
+    inverse: bool = False         # θ (what the model fits) is 1 / the reported parameter (strap: compliance 1/k)
+    bounded_by_max_delay: bool = False
+    lag_free: bool = False
+    shape: str | None = None      # the init key of a nonlinear shape parameter fitted beside θ (Stribeck: vs)
+    shape_default: float = 0.1
+    mimics: tuple = ()
+    limit_key: str | None = None
+    start: Callable | None = field(default=None, compare=False, repr=False)      # (screen θ, screen) -> {value}
+    theta: Callable | None = field(default=None, compare=False, repr=False)      # (model, j) -> (raw, θ())
 
     def unit(self, joint_type: str) -> str:
         return self.unit_prismatic if joint_type == "prismatic" else self.unit_revolute
 
+    @property
+    def theta_neutral(self) -> float:
+        """The no-effect value of the fitted θ (`raw_and_theta`; a strap's compliance: 0)."""
+        return 0.0 if self.inverse else self.neutral
+
+    def raw_and_theta(self, model, j: int):
+        """The raw parameter vector of the effect in `model` and a function giving its physical θ on joint j."""
+        if self.theta is None:
+            raise ValueError(self.effect)
+        return self.theta(model, j)
+
+    def screen_init(self, sc: dict) -> dict:
+        """Warm start of the physical parameter from the post-hoc screen `sc` (right sign; Stribeck's vs too)."""
+        init = {}
+        if self.start is not None:
+            v = self.start(float(sc.get("theta", 0.0)), sc)
+            if "value" in v:
+                init[self.effect] = v["value"]
+        if self.shape is not None and self.shape.split("_")[-1] in sc:
+            init[self.shape] = sc[self.shape.split("_")[-1]]
+        return init
+
+    def report_param(self, pci: dict) -> tuple[float, list[float]]:
+        """Vocabulary parameter and CI of a fitted θ (strap: k = 1/compliance)."""
+        est, (lo, hi) = pci["estimate"], pci["ci"]
+        if self.inverse:
+            k = 1.0 / est if est > 0 else float("inf")
+            return k, [1.0 / hi if hi > 0 else float("inf"), 1.0 / lo if lo > 0 else float("inf")]
+        return est, [lo, hi]
+
+    def within_bounds(self, ci: list[float]) -> list[float]:
+        """A reported interval cut at the end of the parameter's space: a damping, friction or delay is ≥ its
+        no-effect value by construction (a normal interval widened by the refit spread may reach below it);
+        a strap's k = 1/compliance already ends at ∞ (`report_param`)."""
+        if self.positive and not self.inverse:
+            return [max(ci[0], self.neutral), ci[1]]
+        return list(ci)
+
 
 LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
     Candidate("viscous_damping", "joint friction proportional to velocity: torque −b q̇ dissipates b q̇² of power",
-              "b ≥ 0", "N m s/rad", "N s/m", "finding", 0.0, positive=True),
+              "b ≥ 0", "N m s/rad", "N s/m", "finding", 0.0, positive=True, start=_start_positive,
+              theta=lambda m, j: (m.damping_diag, lambda: float(m.damping_matrix()[j, j]))),
     Candidate("coulomb_friction", "dry friction of constant magnitude opposing motion: −Fc sign(q̇)",
-              "Fc ≥ 0", "N m", "N", "finding", 0.0, positive=True),
+              "Fc ≥ 0", "N m", "N", "finding", 0.0, positive=True, start=_start_positive,
+              theta=lambda m, j: (m.coulomb_raw, lambda: float(m.coulomb()[j]))),
     Candidate("stribeck_friction", "static friction in excess of Coulomb that vanishes above a Stribeck velocity vs: "
-              "−Fs exp(−(q̇/vs)²) sign(q̇)", "Fs ≥ 0, vs > 0", "N m", "N", "finding", 0.0, positive=True),
+              "−Fs exp(−(q̇/vs)²) sign(q̇)", "Fs ≥ 0, vs > 0", "N m", "N", "finding", 0.0, positive=True,
+              shape="stribeck_vs", start=_start_positive,
+              theta=lambda m, j: (m.stribeck_fs_raw, lambda: float(m.stribeck()[0][j]))),
     Candidate("actuation_delay", "the exoskeleton applies its recorded torque d seconds late: τ_e,app(t) = τ_e,rec(t−d)",
-              "d ≥ 0", "s", "s", "finding", 0.0, needs_exo=True, positive=True),
+              "d ≥ 0", "s", "s", "finding", 0.0, needs_exo=True, positive=True, bounded_by_max_delay=True,
+              limit_key="d_limit", start=_start_delay,
+              theta=lambda m, j: (m.delay_raw, lambda: float(m.delay()[j]))),
     Candidate("torque_gain", "the torque sensor reads k times the applied exoskeleton torque",
-              "k > 0", "1", "1", "finding", 1.0, needs_exo=True),
+              "k > 0", "1", "1", "finding", 1.0, needs_exo=True, lag_free=True, start=_start_gain,
+              theta=lambda m, j: (m.gain_raw, lambda: float(1.0 / (1.0 - m.gain_term()[j])))),
     Candidate("strap_compliance", "a spring of stiffness k between exoskeleton and limb: the encoder reads the limb "
               "angle plus τ_e,app / k", "k > 0", "N m/rad", "N/m", "finding", float("inf"), needs_exo=True,
-              positive=True),
+              positive=True, inverse=True, start=_start_inverse,
+              theta=lambda m, j: (m.compliance_raw, lambda: float(m.compliance()[j]))),
     Candidate("encoder_offset", "a constant angle offset of the encoder: q_meas = q + δ", "any", "rad", "m",
-              "absorbable", 0.0),
+              "absorbable", 0.0, start=_start_any,
+              theta=lambda m, j: (m.offset_raw, lambda: float(m.encoder_offset()[j]))),
     Candidate("torque_bias", "a constant offset of the recorded torque: τ_rec = τ + τ0", "any", "N m", "N",
-              "absorbable", 0.0),
+              "absorbable", 0.0, start=_start_any,
+              theta=lambda m, j: (m.bias_raw, lambda: float(m.torque_bias()[j]))),
     Candidate("payload", "mass added to a segment (changes inertia and gravity)", "m ≥ 0", "kg", "kg",
               "absorbable", 0.0),
     Candidate("backlash", "play of width w in the transmission: the encoder lags the limb by w/2 after a reversal",
-              "w ≥ 0", "rad", "m", "not_modelled", 0.0),
+              "w ≥ 0", "rad", "m", "not_modelled", 0.0, mimics=("coulomb_friction", "strap_compliance")),
 ]}
 
 # rival explanations the held-out data must separate before either is accepted. A strap and a torque gain:
@@ -99,9 +184,11 @@ def library_table() -> str:
     return "\n".join(rows)
 
 
-def blank_entry(effect: str, j: int, flat, subjects: list) -> dict:
-    """A candidate's report entry before any test: effect, joint, the users it concerns, unit and kind (the same
-    keys on the physics-first and the learned path)."""
+def blank_entry(effect: str, j: int, flat, subjects: list):
+    """A candidate's verdict before any test (`results.Verdict`): effect, joint, the users it concerns, unit and
+    kind (the same fields on the physics-first and the learned path)."""
+    from .results import Verdict
+
     c = LIBRARY[effect]
-    return dict(effect=effect, joint=flat.joints[j], subjects=subjects, unit=c.unit(flat.joint_types[j]), kind=c.kind,
-                estimate=None, ci=None, heldout_gain=None)
+    return Verdict(effect=effect, joint=flat.joints[j], subjects=subjects, unit=c.unit(flat.joint_types[j]),
+                   kind=c.kind, estimate=None, ci=None, heldout_gain=None)

@@ -9,7 +9,7 @@ cannot carry q̇ within a step. A given run (`--model`) is used the same way: it
 a z that moves within a stride; at the pooled z they misfit, so by default (`Settings.adapt_model`) the
 diagnosis first fits the pooled model, with the terms below, to the training segments, with its own base's
 schedule; the run's weights are the starting point (and an extended model starts there too, its terms present
-from the first step, as `procedure._fresh_fit` does for a base trained here). Measured (an `exolan` run trained
+from the first step, as `refits.fresh_fit` does for a base trained here). Measured (an `exolan` run trained
 300 epochs on a world of 2 users × walk, squat, calisthenics, turn × 16 s with a knee damping of 1.06 N m s/rad,
 seed 5962; test settings): judged as given, the reference's held-out MSE was 0.0177 (N m/kg)², the refit noise
 σ_r 2.9e-4, and the damping was missed (0.60, within the noise); adapted, 2.4e-3 and 3.6e-6, and the damping was

@@ -5,7 +5,7 @@ When this path is taken (`adequacy`): the parametric base with every linear cand
 the held-out segments than the learned reference (else the selection is not run at all: a misfitting base pushes
 its misfit into every candidate), and then the parametric base with its accepted terms is at least as good as the
 learned reference (the paired difference's block-bootstrap 95 % interval does not lie above 0). Then the network has nothing to add that the sizes need, and the expensive joint refits of every
-candidate (`procedure.run`'s steps 2-7) are skipped. Otherwise the learned path runs and every candidate carries
+candidate (`procedure.learned_path`) are skipped. Otherwise the learned path runs and every candidate carries
 the parametric estimate beside its own (`attach`).
 """
 from __future__ import annotations
@@ -139,7 +139,10 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
 def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict, joint_ids, held, limits, log) -> dict:
     """The physics-first diagnosis' result dict (`procedure.run`'s return shape)."""
     from . import residuals as R
-    from .procedure import _gain, _metrics, _refit_terms_frozen, _strip, _public, torque_unit
+    from .limits import torque_unit
+    from .refits import metrics as _metrics, refit_terms_frozen as _refit_terms_frozen
+    from .results import public as _public, strip as _strip
+    from .rules import paired_gain as _gain
 
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]

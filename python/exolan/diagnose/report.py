@@ -9,8 +9,7 @@ import numpy as np
 
 from ..runio import atomic_write, jsonable
 from .candidates import library_table
-from .fit import Flat
-from .residuals import residuals
+from .report_plots import plot_ccf, plot_gains, plot_residual_vs_velocity, plot_rollouts
 
 
 def _fmt(x, p=4):
@@ -29,120 +28,6 @@ def _fmt(x, p=4):
     return f"{xf:.{p}g}"
 
 
-def plot_residual_vs_velocity(out: Path, flat: Flat, ref, ext=None, max_points: int = 4000) -> str:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import torch
-
-    held = flat.index("held")
-    if len(held) > max_points:
-        held = held[torch.linspace(0, len(held) - 1, max_points).long()]
-    r0 = residuals(ref, flat, held)
-    r1 = residuals(ext, flat, held) if ext is not None else None
-    n = flat.n
-    fig, axes = plt.subplots(1, n, figsize=(5 * n, 4), squeeze=False)
-    for j in range(n):
-        ax = axes[0, j]
-        v = flat.qd[held, j].numpy()
-        ax.scatter(v, r0[:, j], s=2, alpha=0.35, label="base model", color="tab:red")
-        if r1 is not None:
-            ax.scatter(v, r1[:, j], s=2, alpha=0.35, label="extended model", color="tab:blue")
-        ax.axhline(0, color="k", lw=0.5)
-        unit_v = "m/s" if flat.joint_types[j] == "prismatic" else "rad/s"
-        unit_t = "N" if flat.joint_types[j] == "prismatic" else "N m"
-        ax.set_xlabel(f"{flat.joints[j]} velocity [{unit_v}]")
-        ax.set_ylabel(f"torque residual τ_rec − τ̂ [{unit_t}]")
-        ax.set_title(f"{flat.joints[j]}: held-out residual vs velocity")
-        ax.legend(markerscale=4, fontsize=8)
-    fig.tight_layout()
-    name = "residual_vs_velocity.png"
-    fig.savefig(out / name, dpi=90)
-    plt.close(fig)
-    return name
-
-
-def plot_ccf(out: Path, structure: dict, flat: Flat) -> str:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = flat.n
-    fig, axes = plt.subplots(1, n, figsize=(5.5 * n, 4), squeeze=False)
-    for j, name in enumerate(flat.joints):
-        ax = axes[0, j]
-        cc = structure[name]["ccf"]
-        keys = [f"qd_{name}", f"qdd_{name}", f"q_{name}"]
-        if flat.has_exo:
-            keys += [f"tau_e_{name}", f"tau_e_rate_{name}"]
-        if flat.has_insole:
-            keys += ["f_v"]
-        band = None
-        for k in keys:
-            if k not in cc:
-                continue
-            ax.plot(cc[k]["lags"], cc[k]["ccf"], label=k, lw=1)
-            band = cc[k]["band"] if band is None or not np.isfinite(band) else max(band, cc[k]["band"])
-        if band is not None and np.isfinite(band):
-            ax.axhspan(-band, band, color="0.85", label="95% band (no relation)")
-        ax.set_xlabel("lag [samples] (feature leads at positive lag)")
-        ax.set_ylabel("cross-correlation with residual")
-        ax.set_title(f"{name}: residual cross-correlations (base model)")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fname = "residual_ccf.png"
-    fig.savefig(out / fname, dpi=90)
-    plt.close(fig)
-    return fname
-
-
-def plot_rollouts(out: Path, flat: Flat, ro_base: dict, ro_ext: dict | None) -> str:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    H = np.arange(1, len(ro_base["q"]) + 1)
-    for ax, key, lab in ((axes[0], "q", "q MSE [rad²]"), (axes[1], "qd", "q̇ MSE [rad²/s²]")):
-        ax.semilogy(H, ro_base[key], "o-", color="tab:red", label="base model", ms=3)
-        if ro_ext is not None and len(ro_ext[key]):
-            ax.semilogy(H, ro_ext[key], "o-", color="tab:blue", label="extended model", ms=3)
-        ax.set_xlabel(f"open-loop horizon [steps of {flat.dt * 1000:.0f} ms]")
-        ax.set_ylabel(lab)
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-    fig.suptitle("open-loop rollout error vs horizon (held-out segments)")
-    fig.tight_layout()
-    fname = "rollout_error.png"
-    fig.savefig(out / fname, dpi=90)
-    plt.close(fig)
-    return fname
-
-
-def plot_gains(out: Path, results: list, unit: str = "N m/kg") -> str | None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    rows = [e for e in results if e.get("heldout_gain") is not None and e.get("heldout_gain_ci") is not None]
-    if not rows:
-        return None
-    fig, ax = plt.subplots(figsize=(7, 0.3 * len(rows) + 1.5))
-    colors = {"accepted": "tab:green", "rejected": "0.5", "absorbable": "tab:orange", "ambiguous": "tab:purple"}
-    for i, e in enumerate(rows):
-        g, (lo, hi) = e["heldout_gain"], e["heldout_gain_ci"]
-        ax.errorbar([g], [i], xerr=[[g - lo], [hi - g]], fmt="o", color=colors.get(e["status"], "k"), ms=4)
-    ax.set_yticks(range(len(rows)))
-    ax.set_yticklabels([f"{e['effect']}:{e['joint']} ({e['status']})" for e in rows], fontsize=7)
-    ax.axvline(0, color="k", lw=0.5)
-    ax.set_xscale("symlog", linthresh=1e-3)
-    what = "mass-normalised torque MSE" if unit == "N m/kg" else "torque MSE"
-    ax.set_xlabel(f"held-out gain in {what} [({unit})²]\nwith 95% block-bootstrap CI")
-    fig.tight_layout()
-    fname = "candidate_gains.png"
-    fig.savefig(out / fname, dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return fname
 
 
 RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none is tuned to a world):
@@ -189,8 +74,12 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    better term of each ambiguous set (forward selection), confirmed with both models fitted from scratch where
    the base was fitted here; the extended model with the terms at their joint estimates must beat the base on
    held-out data as in rule 1 (fitted from scratch, or else the base's own refit with the terms held there,
-   beyond the refit noise; Bonferroni over the two), or its terms are `ambiguous`;
+   beyond the refit noise; its looks share the confirmation's 5 %), or its terms are `ambiguous`;
 7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings).
+One significance budget: every accept decision spends from one family-wise 5 % over the m candidates the data can
+test: a candidate's single-term test (rules 1 and 2) at α/m (Bonferroni), a further term in forward selection,
+after r accepted ones, at α/(m − r) (Holm); a decision that may pass by a second look (the same terms fitted from
+scratch and judged paired over seeds) splits its level evenly between its looks (docs/DIAGNOSIS.md).
 Where the data hold several subjects, a candidate whose post-hoc correction on the training rows is wanted by
 some subjects only (their θ clears a Bonferroni z over the subjects, the others' does not, Cochran's Q p < 0.05)
 is fitted as a term of those subjects only (switched off on the other subjects' trials) where that term beats one
@@ -354,11 +243,11 @@ def _limit_lines(limits: dict) -> list[str]:
          "order) through its rate. Gains between the limits below, and delays shorter than the one below, would "
          "not clear the sampling and refit noise of these data (an estimate at the base's present misfit, "
          "optimistic where the base absorbs part of the own variation too; a delay near its limit is also "
-         "estimated short; `procedure.gain_detection_limit`, `procedure.delay_detection_limit`)." +
+         "estimated short; `limits.gain_detection_limit`, `limits.delay_detection_limit`)." +
          (" The gain's limits here are measured, not computed: a known gain was written into the recorded joint "
           "torque, the base fitted again from its start and rule 3's own-variation test run on it as on the data; "
           "its held-out gain, scaled as θ², gives the gain at which the test would just pass "
-          "(`procedure.limits_by_injection`; per joint below the table)."
+          "(`limits.limits_by_injection`; per joint below the table)."
           if measured else "") +
          (" The delay's limit is measured the same way: a known delay written into the recorded joint torque "
           "(τ_e(t) − τ_e(t − d)), the base fitted again, the delay term refitted on it and held to rules 1 and 2."
@@ -430,6 +319,62 @@ def _physics_lines(ph: dict | None, unit: str) -> list[str]:
     return L
 
 
+def _finding_lines(f: dict, U: str) -> list[str]:
+    """The verdict's lines for one finding: its size and gain, how its interval was made, the comparisons that
+    accepted it, and its evidence."""
+    L = []
+    unit = "" if f["unit"] == "1" else f" {f['unit']}"      # a gain is a pure number
+    who = f" of **{', '.join(f['subjects'])}** only" if (f.get("subject_form") or {}).get("subjects") else ""
+    sized = f.get("estimate_by_subject")
+    size_text = (" (geometric mean of the subjects' own sizes: " + ", ".join(
+        f"{u} {_fmt(v['estimate'])}{unit} CI {_fmt(v['ci'], 3)}" for u, v in sized.items()) + ")") if sized else ""
+    L.append(f"- **{f['effect']}** on **{f['joint']}**{who}: {_fmt(f['estimate'])}{unit} "
+             f"(95% CI {_fmt(f['ci'], 3)}){size_text}, held-out gain {_fmt(f['heldout_gain'], 3)} ({U})² "
+             f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
+    if f.get("ci_identification") is not None:
+        how = f.get("warm_start", "the reference refitted with this term alone")
+        L.append(f"  - the interval above adds the spread between the joint fit and the warm start ({how}: "
+                 f"{_fmt(f.get('estimate_warm_start'))}; a sign-constrained parameter's interval ends at its "
+                 f"no-effect value); the joint fit's own (HAC) interval, which "
+                 f"rule 4 checks against the no-effect value: {_fmt(f['ci_identification'], 3)}")
+    dg = f.get("decision_gain")
+    if dg:
+        L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}"
+                 + (f" ({dg['combination']}, {100 * dg['level']:.1f}% CI, fitted from scratch at "
+                    f"{dg.get('seeds')} seeds, each paired with the term-free fit of its seed: beyond the "
+                    f"spread of the paired gains {_fmt(dg.get('noise_between_seeds'), 3)}, by seed "
+                    f"{_fmt(dg.get('gain_by_seed'), 3)})"
+                    if dg.get("fitted") == "from scratch" else ""))
+    share = (dg or {}).get("terms_share")
+    if share:
+        L.append(f"  - switched off, the term costs its fit {_fmt(share['gain'], 3)} CI "
+                 f"{_fmt(share['ci'], 3)}: its own share, beyond the refit noise σ_r "
+                 f"{_fmt(share['refit_noise'], 3)} (rule 2)")
+    cg = f.get("conditional_gain")
+    if cg:      # accepted in forward selection: what it adds to the terms accepted before it
+        L.append(f"  - on top of {', '.join(cg['given'])} (warm start): {_fmt(cg['gain'], 3)} CI {_fmt(cg['ci'], 3)}")
+        fs = cg.get("from_scratch")
+        if fs:
+            L.append(f"  - on top of them, both fitted from scratch: {_fmt(fs['gain'], 3)} CI {_fmt(fs['ci'], 3)} "
+                     f"({fs.get('combination')}, beyond the noise between optima "
+                     f"{_fmt(fs.get('noise_between_optima'), 3)})")
+            pr = fs.get("paired") or {}
+            if pr.get("seeds"):
+                L.append(f"  - paired over {pr['seeds']} seeds (each with the fit of the terms before it at "
+                         f"that seed): {_fmt(pr['gain'], 3)} CI {_fmt(pr['ci'], 3)} at "
+                         f"{100 * pr['level']:.1f} %, by seed {_fmt(pr['gain_by_seed'], 3)}; switched off, the "
+                         f"term costs its fit {_fmt(pr['terms_share']['gain'], 3)} CI "
+                         f"{_fmt(pr['terms_share']['ci'], 3)} (σ_r {_fmt(pr['terms_share']['refit_noise'], 3)})")
+    wf = f.get("warm_fit")
+    if wf:
+        wg = wf["decision_gain"]
+        L.append(f"  - the reference refitted with this term (warm start) failed rule 1 or 2: estimate "
+                 f"{_fmt(wf['estimate'])}, decision gain {_fmt(wg['gain'], 3)} CI {_fmt(wg['ci'], 3)} (a warm "
+                 f"start keeps what the base absorbed of the effect); the term was fitted from scratch")
+    L += _evidence_lines(f)
+    return L
+
+
 def markdown(rep: dict) -> str:
     d = rep.get("data", {})
     U = _unit(rep)
@@ -443,55 +388,7 @@ def markdown(rep: dict) -> str:
     L.append("## Verdict")
     if findings:
         for f in findings:
-            unit = "" if f["unit"] == "1" else f" {f['unit']}"      # a gain is a pure number
-            who = f" of **{', '.join(f['subjects'])}** only" if (f.get("subject_form") or {}).get("subjects") else ""
-            sized = f.get("estimate_by_subject")
-            size_text = (" (geometric mean of the subjects' own sizes: " + ", ".join(
-                f"{u} {_fmt(v['estimate'])}{unit} CI {_fmt(v['ci'], 3)}" for u, v in sized.items()) + ")") if sized else ""
-            L.append(f"- **{f['effect']}** on **{f['joint']}**{who}: {_fmt(f['estimate'])}{unit} "
-                     f"(95% CI {_fmt(f['ci'], 3)}){size_text}, held-out gain {_fmt(f['heldout_gain'], 3)} ({U})² "
-                     f"CI {_fmt(f.get('heldout_gain_ci'), 3)}, relative {_fmt(f.get('relative_gain'), 3)}.")
-            if f.get("ci_identification") is not None:
-                how = f.get("warm_start", "the reference refitted with this term alone")
-                L.append(f"  - the interval above adds the spread between the joint fit and the warm start ({how}: "
-                         f"{_fmt(f.get('estimate_warm_start'))}; a sign-constrained parameter's interval ends at its "
-                         f"no-effect value); the joint fit's own (HAC) interval, which "
-                         f"rule 4 checks against the no-effect value: {_fmt(f['ci_identification'], 3)}")
-            dg = f.get("decision_gain")
-            if dg:
-                L.append(f"  - decision gain ({dg.get('scale')}): {_fmt(dg['gain'], 3)} CI {_fmt(dg['ci'], 3)}"
-                         + (f" ({dg['combination']}, {100 * dg['level']:.1f}% CI, fitted from scratch at "
-                            f"{dg.get('seeds')} seeds, each paired with the term-free fit of its seed: beyond the "
-                            f"spread of the paired gains {_fmt(dg.get('noise_between_seeds'), 3)}, by seed "
-                            f"{_fmt(dg.get('gain_by_seed'), 3)})"
-                            if dg.get("fitted") == "from scratch" else ""))
-            share = (dg or {}).get("terms_share")
-            if share:
-                L.append(f"  - switched off, the term costs its fit {_fmt(share['gain'], 3)} CI "
-                         f"{_fmt(share['ci'], 3)}: its own share, beyond the refit noise σ_r "
-                         f"{_fmt(share['refit_noise'], 3)} (rule 2)")
-            cg = f.get("conditional_gain")
-            if cg:      # accepted in forward selection: what it adds to the terms accepted before it
-                L.append(f"  - on top of {', '.join(cg['given'])} (warm start): {_fmt(cg['gain'], 3)} CI {_fmt(cg['ci'], 3)}")
-                fs = cg.get("from_scratch")
-                if fs:
-                    L.append(f"  - on top of them, both fitted from scratch: {_fmt(fs['gain'], 3)} CI {_fmt(fs['ci'], 3)} "
-                             f"({fs.get('combination')}, beyond the noise between optima "
-                             f"{_fmt(fs.get('noise_between_optima'), 3)})")
-                    pr = fs.get("paired") or {}
-                    if pr.get("seeds"):
-                        L.append(f"  - paired over {pr['seeds']} seeds (each with the fit of the terms before it at "
-                                 f"that seed): {_fmt(pr['gain'], 3)} CI {_fmt(pr['ci'], 3)} at "
-                                 f"{100 * pr['level']:.1f} %, by seed {_fmt(pr['gain_by_seed'], 3)}; switched off, the "
-                                 f"term costs its fit {_fmt(pr['terms_share']['gain'], 3)} CI "
-                                 f"{_fmt(pr['terms_share']['ci'], 3)} (σ_r {_fmt(pr['terms_share']['refit_noise'], 3)})")
-            wf = f.get("warm_fit")
-            if wf:
-                wg = wf["decision_gain"]
-                L.append(f"  - the reference refitted with this term (warm start) failed rule 1 or 2: estimate "
-                         f"{_fmt(wf['estimate'])}, decision gain {_fmt(wg['gain'], 3)} CI {_fmt(wg['ci'], 3)} (a warm "
-                         f"start keeps what the base absorbed of the effect); the term was fitted from scratch")
-            L += _evidence_lines(f)
+            L += _finding_lines(f, U)
     else:
         L.append("- **Nothing found**: no candidate effect passed the decision rule on held-out data.")
     amb = [e for e in rep["rejected"] if e["status"] == "ambiguous"]

@@ -154,7 +154,7 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
     pooled_ok, grouped_ok = bool(b["mean"] > 0 and sign_ok), bool(bg["mean"] > 0)
     by_group = dict(gain=bg["mean"], ci=bg["ci"], theta={str(g): float(v) for g, v in zip(labels, th_g)}, **extra_g)
     if grouped_ok and not pooled_ok:
-        # the grid variant (vs, d) of the per-group form, and its pooled θ (`procedure._screen_init` takes a
+        # the grid variant (vs, d) of the per-group form, and its pooled θ (`Candidate.screen_init` takes a
         # warm start from it only where its sign is physical)
         return dict(passes=True, theta=theta_g, gain=bg["mean"], ci=bg["ci"], sign_ok=True, reason="", form="per group",
                     pooled=dict(gain=b["mean"], ci=b["ci"]), by_group=by_group, **extra_g)

@@ -42,7 +42,7 @@ def bootstrap_mean(x: np.ndarray, n_boot: int = 1000, alpha: float = 0.05, block
     """Mean of x (or mean(x)/mean(ratio_to), paired) with a circular-block-bootstrap percentile CI.
 
     `draws=True` also returns the bootstrap replicates (`draws`), for a decision that adds another error to
-    the sampling distribution (the refit noise of `procedure._above_noise`)."""
+    the sampling distribution (the refit noise of `rules.above_noise`)."""
     x = np.asarray(x, dtype=np.float64)
     keep = np.isfinite(x) if ratio_to is None else np.isfinite(x) & np.isfinite(ratio_to)
     x = x[keep]
