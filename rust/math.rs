@@ -81,29 +81,14 @@ pub(crate) fn exp_clamped<const FMA: bool>(y: f64) -> f64 {
     two_k + two_k * em
 }
 
-/// expm1(2|x|), |x| clamped at 20 (beyond, tanh rounds to ±1 in f64; clamping keeps exp finite).
-#[inline(always)]
-fn tanh_em<const FMA: bool>(x: f64) -> f64 {
-    let a = if x.abs() > 20.0 { 20.0 } else { x.abs() }; // NaN propagates (min() would drop it)
-    expm1_clamped::<FMA>(2.0 * a)
-}
-
-/// tanh(x) = em / (em + 2), em = expm1(2|x|), a few ulp from libm.
+/// tanh(x), a few ulp from libm.
 #[inline(always)]
 pub(crate) fn tanh<const FMA: bool>(x: f64) -> f64 {
-    let em = tanh_em::<FMA>(x);
+    // |x| ≥ 20: tanh rounds to ±1 in f64; clamping keeps exp finite.
+    let a = if x.abs() > 20.0 { 20.0 } else { x.abs() }; // NaN propagates (min() would drop it)
+    let em = expm1_clamped::<FMA>(2.0 * a);
     let t = em / (em + 2.0);
     t.copysign(x)
-}
-
-/// tanh of x and y with one division: 1 / (dx dy) serves both quotients (the divider is the
-/// bottleneck of the tanh loops). Two more roundings than `tanh`: still a few ulp from libm.
-#[inline(always)]
-pub(crate) fn tanh2<const FMA: bool>(x: f64, y: f64) -> (f64, f64) {
-    let (ex, ey) = (tanh_em::<FMA>(x), tanh_em::<FMA>(y));
-    let (dx, dy) = (ex + 2.0, ey + 2.0);
-    let r = 1.0 / (dx * dy); // ≤ (2.4e17)² : no overflow
-    (((ex * dy) * r).copysign(x), ((ey * dx) * r).copysign(y))
 }
 
 /// Logistic sigmoid 1/(1+e^{−x}), accurate in both tails.
@@ -121,17 +106,11 @@ pub(crate) fn sigmoid<const FMA: bool>(x: f64) -> f64 {
     }
 }
 
-/// In-place tanh over a slice (vectorised loop): element i paired with i + len/2 in `tanh2` (pairs
-/// fixed by index, not by vector width, so every code path gives the same bits).
+/// In-place tanh over a slice (vectorised loop).
 #[inline(always)]
 pub(crate) fn tanh_slice<const FMA: bool>(xs: &mut [f64]) {
-    let half = xs.len() / 2;
-    let (a, b) = xs.split_at_mut(half);
-    for (x, y) in a.iter_mut().zip(b[..half].iter_mut()) {
-        (*x, *y) = tanh2::<FMA>(*x, *y);
-    }
-    if let Some(last) = b.get_mut(half) {
-        *last = tanh::<FMA>(*last);
+    for x in xs.iter_mut() {
+        *x = tanh::<FMA>(*x);
     }
 }
 
@@ -177,13 +156,6 @@ mod tests {
             x += 0.000_731;
         }
         assert!(worst < 1e-15, "worst relative error {worst:e}");
-        let mut x = -25.0;
-        while x < 25.0 {
-            let (a, b) = tanh2::<true>(x, 0.37 - x * 1e-3);
-            worst = worst.max(rel(a, x.tanh())).max(rel(b, (0.37 - x * 1e-3).tanh()));
-            x += 0.000_731;
-        }
-        assert!(worst < 1e-15, "worst relative error {worst:e} (paired)");
         assert_eq!(tanh::<false>(0.0), 0.0);
         assert!(tanh::<false>(f64::NAN).is_nan());
     }
