@@ -4,7 +4,7 @@
 //! thread takes it, so results are bit-identical for every thread count. Nothing here allocates:
 //! the caller passes the workspaces, and the pool hands out indices without a queue.
 
-use crate::delan::{eval_dispatch, eval_group_simd, ExoTorque, Workspace, GROUP};
+use crate::delan::{eval_dispatch, eval_group_simd, z_bias_group_simd, ExoTorque, Workspace, GROUP};
 use crate::encoder::EncoderState;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -221,12 +221,21 @@ impl Model {
             ws.status = r.err();
         }
         for k in 0..t_len {
+            // per-step contexts (checked by rollout_begin) of a full group: the z layers once for all
+            let z_set = wss.len() == GROUP && active.iter().all(|a| *a) && matches!(inp.z, ZSeq::PerStep(_));
+            if z_set {
+                let zs: [&[f64]; GROUP] = std::array::from_fn(|e| match subs[e].z {
+                    ZSeq::PerStep(z) => &z[k * dz..(k + 1) * dz],
+                    _ => &[],
+                });
+                z_bias_group_simd(self.simd, self, wss, &zs);
+            }
             for (e, ws) in wss.iter_mut().enumerate() {
                 if !active[e] {
                     continue;
                 }
                 let out = e * per_out..(e + 1) * per_out;
-                if let Err(err) = self.step_begin(ws, &subs[e], k, dt, &qo[out.clone()], &qdo[out]) {
+                if let Err(err) = self.step_begin(ws, &subs[e], k, dt, &qo[out.clone()], &qdo[out], z_set) {
                     (active[e], ws.status) = (false, Some(err));
                 }
             }

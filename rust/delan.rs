@@ -11,7 +11,7 @@ use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
 use crate::mlp::{dense, mlp_rest, tanh_tangent, Dense, Mlp};
 #[cfg(target_arch = "x86_64")]
-use crate::mlp::block512;
+use crate::mlp::block512_samples;
 use crate::model::Model;
 use crate::simd::simd_dispatch;
 
@@ -68,6 +68,8 @@ pub struct Workspace {
     pub(crate) g: Vec<f64>,
     pub(crate) b: Vec<f64>,
     pub(crate) v: f64,
+    /// Order of the hidden layers' weights in the next `eval` (alternates, see there).
+    pub(crate) flip: bool,
     pub(crate) t1: Vec<f64>,
     pub(crate) t2: Vec<f64>,
     pub(crate) rhs: Vec<f64>,
@@ -104,6 +106,7 @@ impl Workspace {
             g: vec![0.0; n],
             b: vec![0.0; n],
             v: 0.0,
+            flip: false,
             t1: vec![0.0; n],
             t2: vec![0.0; n],
             rhs: vec![0.0; n],
@@ -192,11 +195,21 @@ fn first_layer<const FMA: bool>(
 ) {
     let h = l0.out;
     let (a0, tang) = a[..nt * h].split_at_mut(h);
-    a0.copy_from_slice(&zb[..h]);
-    for (c, &p) in phi.iter().enumerate() {
-        for (ai, wi) in a0.iter_mut().zip(l0.col(c)) {
-            *ai = madd::<FMA>(*wi, p, *ai);
+    // 8 outputs at a time kept in registers across the φ columns (not stored per column); same sums
+    let (wt, mut i0) = (&l0.wt[..phi.len() * h], 0);
+    while i0 + 8 <= h {
+        let mut acc: [f64; 8] = zb[i0..i0 + 8].try_into().unwrap();
+        for (c, &p) in phi.iter().enumerate() {
+            let w = &wt[c * h + i0..c * h + i0 + 8];
+            for l in 0..8 {
+                acc[l] = madd::<FMA>(w[l], p, acc[l]);
+            }
         }
+        a0[i0..i0 + 8].copy_from_slice(&acc);
+        i0 += 8;
+    }
+    for i in i0..h {
+        a0[i] = phi.iter().enumerate().fold(zb[i], |s, (c, &p)| madd::<FMA>(wt[c * h + i], p, s));
     }
     // ∂a/∂q_k only touches the (one or two) columns of φ that depend on q_k.
     for k in 0..nt - 1 {
@@ -220,7 +233,7 @@ fn first_layer<const FMA: bool>(
 #[inline(always)]
 fn run_net<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f64], dphi: &[f64], cols: &[(usize, usize)], nt: usize, bufs: &mut [Vec<f64>]) {
     first_layer::<FMA>(&net.layers[0], zb, phi, dphi, cols, nt, &mut bufs[0]);
-    mlp_rest::<FMA, WIDE>(net, nt, bufs);
+    mlp_rest::<FMA, WIDE>(net, nt, bufs, false);
 }
 
 /// φ(q) and dφ/dq at `ws.qp`, layer 0 of L and V (with tangents), and the whole LIM pass (B).
@@ -258,15 +271,21 @@ fn eval_head<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace) {
 fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
     let nt = m.n + 1;
     eval_head::<FMA, WIDE>(m, ws);
-    mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l);
-    mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v);
+    // The two hidden layers (2 x 32 KB at 64 wide) overflow L1 together: every other call walks them in
+    // reverse order (the last weights used come first), so part of them is still cached. Same results.
+    ws.flip = !ws.flip;
+    if ws.flip {
+        mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l, false);
+        mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v, false);
+    } else {
+        mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v, true);
+        mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l, true);
+    }
     eval_tail(m, ws, qd, want_c);
 }
 
 /// Elements evaluated together by `eval_group`.
 pub(crate) const GROUP: usize = 4;
-/// Capacity of `eval_group`'s stacked inputs and outputs (GROUP elements x 3 blocks x width 64).
-const GROUP_CAP: usize = GROUP * 3 * 64;
 
 /// `eval` (want_c) of GROUP workspaces at once, each with its q̇ in `ws.qdp`: every hidden layer's
 /// weights pass once for all of them (AVX-512, 2 joints, widths ≤ 64; otherwise one by one). Each
@@ -287,22 +306,17 @@ fn eval_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace
                 tanh_tangent::<FMA>(&mut bufs[l - 1], prev.out, nt);
             }
             #[cfg(target_arch = "x86_64")]
-            if WIDE && nt == 3 && wss.len() == GROUP && d.out % 16 == 0 && GROUP * nt * d.inp.max(d.out) <= GROUP_CAP {
-                let (mut x, mut y) = ([0.0f64; GROUP_CAP], [0.0f64; GROUP_CAP]);
-                let (wi, wo) = (nt * d.inp, nt * d.out);
-                for (e, ws) in wss.iter().enumerate() {
-                    let bufs = if net_is_l { &ws.bufs_l } else { &ws.bufs_v };
-                    x[e * wi..(e + 1) * wi].copy_from_slice(&bufs[l - 1][..wi]);
-                }
-                let mut i0 = 0;
-                while i0 < d.out {
-                    // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
-                    unsafe { block512::<{ GROUP * 3 }, 2, 3>(d, &x, &mut y, i0) };
-                    i0 += 16;
-                }
+            if WIDE && nt == 3 && wss.len() == GROUP && d.out % 16 == 0 {
+                let (mut xs, mut ys) = ([std::ptr::null(); GROUP], [std::ptr::null_mut(); GROUP]);
                 for (e, ws) in wss.iter_mut().enumerate() {
                     let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
-                    bufs[l][..wo].copy_from_slice(&y[e * wo..(e + 1) * wo]);
+                    assert!(bufs[l - 1].len() >= nt * d.inp && bufs[l].len() >= nt * d.out);
+                    (xs[e], ys[e]) = (bufs[l - 1].as_ptr(), bufs[l].as_mut_ptr());
+                }
+                for i0 in (0..d.out).step_by(16) {
+                    // SAFETY: lengths asserted above, inputs and outputs are distinct buffers; WIDE is only
+                    // instantiated inside `#[target_feature(enable = "avx512f")]` code.
+                    unsafe { block512_samples::<GROUP, 3, 2>(d, &xs, &ys, i0) };
                 }
                 grouped = true;
             }
@@ -321,6 +335,55 @@ fn eval_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace
         ws.qdp = qd;
     }
 }
+
+/// The first-layer z contribution of net 0 (L), 1 (V) or 2 (LIM).
+fn zb_mut(ws: &mut Workspace, net: usize) -> &mut Vec<f64> {
+    match net {
+        0 => &mut ws.zb_l,
+        1 => &mut ws.zb_v,
+        _ => &mut ws.zb_lim,
+    }
+}
+
+/// `set_z` of GROUP workspaces to already checked contexts `zs`: each first layer's z columns pass once
+/// for all of them (AVX-512; otherwise one by one). The same sums as `set_z`, so the same bits.
+#[inline(always)]
+fn z_bias_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace], zs: &[&[f64]]) {
+    #[cfg(target_arch = "x86_64")]
+    if WIDE && wss.len() == GROUP && zs.len() == GROUP {
+        for (ws, z) in wss.iter_mut().zip(zs) {
+            ws.z.copy_from_slice(z);
+            ws.z_ready = true;
+        }
+        for net in 0..3 {
+            let mlp = [Some(&m.net_l), Some(&m.net_v), m.net_lim.as_ref()][net];
+            let Some(mlp) = mlp else { continue };
+            match &mlp.z_part {
+                Some(d) if d.out % 8 == 0 => {
+                    let (mut xs, mut ys) = ([std::ptr::null(); GROUP], [std::ptr::null_mut(); GROUP]);
+                    for e in 0..GROUP {
+                        let zb = zb_mut(&mut wss[e], net);
+                        assert!(zs[e].len() >= d.inp && zb.len() >= d.out);
+                        (xs[e], ys[e]) = (zs[e].as_ptr(), zb.as_mut_ptr());
+                    }
+                    for i0 in (0..d.out).step_by(8) {
+                        // SAFETY: z has d.inp values (asserted), zb_* has the layer's width; avx512f (WIDE).
+                        unsafe { block512_samples::<GROUP, 1, 1>(d, &xs, &ys, i0) };
+                    }
+                }
+                _ => wss.iter_mut().zip(zs).for_each(|(ws, z)| mlp.z_bias_fast::<FMA, WIDE>(z, zb_mut(ws, net))),
+            }
+        }
+        return;
+    }
+    for (ws, z) in wss.iter_mut().zip(zs) {
+        ws.z.copy_from_slice(z);
+        z_bias_all::<FMA, WIDE>(m, ws, z);
+        ws.z_ready = true;
+    }
+}
+
+simd_dispatch!(pub(crate) fn z_bias_group_simd(m: &Model, wss: &mut [Workspace], zs: &[&[f64]]) = z_bias_group;);
 
 simd_dispatch!(pub(crate) fn eval_group_simd(m: &Model, wss: &mut [Workspace]) = eval_group;);
 

@@ -155,17 +155,19 @@ fn narrow<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64],
 /// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
 /// outputs (`WIDE`: 32, 16 and 8 outputs in 512-bit registers), then of 4, then the narrow path.
 #[inline(always)]
-fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64]) {
+fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64], rev: bool) {
     let out = d.out;
     let mut i0 = 0;
     #[cfg(target_arch = "x86_64")]
     if WIDE {
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
         unsafe {
-            while i0 + 32 <= out {
-                block512::<NT, 4, NT>(d, x, y, i0);
-                i0 += 32;
+            // rev: the same blocks last to first (independent outputs, so the same bits; see `eval`)
+            let n32 = out / 32;
+            for b in 0..n32 {
+                block512::<NT, 4, NT>(d, x, y, 32 * if rev { n32 - 1 - b } else { b });
             }
+            i0 = 32 * n32;
             while i0 + 8 <= out {
                 block512::<NT, 1, NT>(d, x, y, i0);
                 i0 += 8;
@@ -224,6 +226,52 @@ pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usiz
     }
 }
 
+/// `block512` for G samples at once, each with its own NB blocks (value, tangents) at `xs[e]`/`ys[e]`
+/// (`inp`/`out` apart, the bias on block 0): every weight is loaded once for all G·NB columns. The same
+/// operations in the same order as `block512` on each sample alone, so the same bits.
+/// SAFETY (caller): `xs[e]` holds NB·inp readable values and `ys[e]` NB·out writable ones, i0 + 8·R <= out.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+pub(crate) unsafe fn block512_samples<const G: usize, const NB: usize, const R: usize>(
+    d: &Dense,
+    xs: &[*const f64; G],
+    ys: &[*mut f64; G],
+    i0: usize,
+) {
+    use std::arch::x86_64::*;
+    let (inp, out) = (d.inp, d.out);
+    assert!(d.wt.len() >= inp * out && d.b.len() >= out && i0 + 8 * R <= out);
+    let mut acc = [[[_mm512_setzero_pd(); R]; NB]; G];
+    for e in 0..G {
+        for r in 0..R {
+            acc[e][0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
+        }
+    }
+    let wt = d.wt.as_ptr();
+    for j in 0..inp {
+        let mut w = [_mm512_setzero_pd(); R];
+        for r in 0..R {
+            w[r] = unsafe { _mm512_loadu_pd(wt.add(j * out + i0 + 8 * r)) };
+        }
+        for e in 0..G {
+            for k in 0..NB {
+                let xk = _mm512_set1_pd(unsafe { *xs[e].add(k * inp + j) });
+                for r in 0..R {
+                    acc[e][k][r] = _mm512_fmadd_pd(w[r], xk, acc[e][k][r]);
+                }
+            }
+        }
+    }
+    for e in 0..G {
+        for k in 0..NB {
+            for r in 0..R {
+                unsafe { _mm512_storeu_pd(ys[e].add(k * out + i0 + 8 * r), acc[e][k][r]) };
+            }
+        }
+    }
+}
+
 /// Same as `dense_nt` for any block count (general n; not the 2-joint hot path).
 #[inline(always)]
 fn dense_dyn<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
@@ -250,26 +298,32 @@ fn dense_dyn<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
 /// computed together, never the order of any sum, so AVX2 and AVX-512 agree bit for bit.
 #[inline(always)]
 pub(crate) fn dense<const FMA: bool, const WIDE: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
+    dense_ordered::<FMA, WIDE>(d, nt, x, y, false)
+}
+
+/// `dense`, its register blocks visited last to first when `rev` (the same results).
+#[inline(always)]
+pub(crate) fn dense_ordered<const FMA: bool, const WIDE: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64], rev: bool) {
     match (FMA, WIDE) {
         (true, true) => match nt {
-            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y),
-            2 => dense_nt::<2, FMA, WIDE, 8>(d, x, y),
-            3 => dense_nt::<3, FMA, WIDE, 8>(d, x, y),
-            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y),
+            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y, rev),
+            2 => dense_nt::<2, FMA, WIDE, 8>(d, x, y, rev),
+            3 => dense_nt::<3, FMA, WIDE, 8>(d, x, y, rev),
+            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y, rev),
             _ => dense_dyn::<FMA>(d, nt, x, y),
         },
         (true, false) => match nt {
-            1 => dense_nt::<1, FMA, WIDE, 16>(d, x, y),
-            2 => dense_nt::<2, FMA, WIDE, 12>(d, x, y),
-            3 => dense_nt::<3, FMA, WIDE, 12>(d, x, y),
-            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y),
+            1 => dense_nt::<1, FMA, WIDE, 16>(d, x, y, rev),
+            2 => dense_nt::<2, FMA, WIDE, 12>(d, x, y, rev),
+            3 => dense_nt::<3, FMA, WIDE, 12>(d, x, y, rev),
+            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y, rev),
             _ => dense_dyn::<FMA>(d, nt, x, y),
         },
         _ => match nt {
-            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y),
-            2 => dense_nt::<2, FMA, WIDE, 4>(d, x, y),
-            3 => dense_nt::<3, FMA, WIDE, 4>(d, x, y),
-            4 => dense_nt::<4, FMA, WIDE, 4>(d, x, y),
+            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y, rev),
+            2 => dense_nt::<2, FMA, WIDE, 4>(d, x, y, rev),
+            3 => dense_nt::<3, FMA, WIDE, 4>(d, x, y, rev),
+            4 => dense_nt::<4, FMA, WIDE, 4>(d, x, y, rev),
             _ => dense_dyn::<FMA>(d, nt, x, y),
         },
     }
@@ -291,12 +345,12 @@ pub(crate) fn tanh_tangent<const FMA: bool>(a: &mut [f64], width: usize, nt: usi
 /// Run layers 1.. of `mlp` given layer 0's pre-activations (with tangents) in `bufs[0]`.
 /// The output layer's values and tangents end up in `bufs[last]`.
 #[inline(always)]
-pub(crate) fn mlp_rest<const FMA: bool, const WIDE: bool>(mlp: &Mlp, nt: usize, bufs: &mut [Vec<f64>]) {
+pub(crate) fn mlp_rest<const FMA: bool, const WIDE: bool>(mlp: &Mlp, nt: usize, bufs: &mut [Vec<f64>], rev: bool) {
     for l in 1..mlp.layers.len() {
         let (prev, next) = bufs.split_at_mut(l);
         let a = &mut prev[l - 1];
         tanh_tangent::<FMA>(a, mlp.layers[l - 1].out, nt);
-        dense::<FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0]);
+        dense_ordered::<FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0], rev);
     }
 }
 

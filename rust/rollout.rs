@@ -63,7 +63,7 @@ impl Model {
     ) -> Result<()> {
         let t_len = self.rollout_begin(ws, q0, qd0, &inp, dt, q_out, qd_out)?;
         for k in 0..t_len {
-            self.step_begin(ws, &inp, k, dt, q_out, qd_out)?;
+            self.step_begin(ws, &inp, k, dt, q_out, qd_out, false)?;
             let qd = std::mem::take(&mut ws.qdp);
             eval_dispatch(self, ws, &qd, true);
             ws.qdp = qd;
@@ -139,10 +139,12 @@ impl Model {
         Ok(t_len)
     }
 
-    /// Step k before the network pass: z_k, the delayed exo torque, the state into `ws.qp`/`ws.qdp`.
-    pub(crate) fn step_begin(&self, ws: &mut Workspace, inp: &Inputs, k: usize, dt: f64, q_out: &[f64], qd_out: &[f64]) -> Result<()> {
+    /// Step k before the network pass: z_k (unless `z_set`: a group set it), the delayed exo torque,
+    /// the state into `ws.qp`/`ws.qdp`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn step_begin(&self, ws: &mut Workspace, inp: &Inputs, k: usize, dt: f64, q_out: &[f64], qd_out: &[f64], z_set: bool) -> Result<()> {
         let n = self.n;
-        if let ZSeq::PerStep(z) = inp.z {
+        if let (ZSeq::PerStep(z), false) = (inp.z, z_set) {
             ws.set_z(self, &z[k * self.dz..(k + 1) * self.dz])?;
         }
         if let (Some(te), Some(d)) = (inp.tau_e, self.ext.delay.as_deref()) {
