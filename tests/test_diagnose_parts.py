@@ -1625,3 +1625,14 @@ def test_the_reports_limits_table_says_none_where_no_gain_shows_and_lists_each_i
     assert len(lines) == 2 and "a delay of 30 ms written into the data was recovered as 26 ms" in lines[0]
     assert "computed at the base's misfit the limit would be 16 ms" in lines[0]
     assert "no delay up to that size shows" in lines[1] and "does not pass rules 1 and 2" in lines[1]
+
+
+def test_a_term_outside_its_physical_domain_is_not_that_effect():
+    """A significant torque gain of -3 (the main job's world once gave one: the exo torque's delay and the
+    base's misfit fold into it) or a negative damping is not the effect named; in range it stays a candidate."""
+    from exolan.diagnose.candidates import LIBRARY
+    assert LIBRARY["torque_gain"].outside_domain([-22.3, -1.7])
+    assert not LIBRARY["torque_gain"].outside_domain([0.5, 2.0])
+    assert not LIBRARY["torque_gain"].outside_domain([-0.2, 1.4])      # reaches into the domain: judged as usual
+    assert LIBRARY["viscous_damping"].outside_domain([-3.0, -0.5])
+    assert not LIBRARY["encoder_offset"].outside_domain([-3.0, -0.5])   # an offset may have either sign

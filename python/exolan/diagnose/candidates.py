@@ -66,11 +66,17 @@ class Candidate:
     shape_default: float = 0.1
     mimics: tuple = ()
     limit_key: str | None = None
+    domain_lo: float = -float("inf")   # the reported parameter's physical domain lies above this (`sign`)
     start: Callable | None = field(default=None, compare=False, repr=False)      # (screen θ, screen) -> {value}
     theta: Callable | None = field(default=None, compare=False, repr=False)      # (model, j) -> (raw, θ())
 
     def unit(self, joint_type: str) -> str:
         return self.unit_prismatic if joint_type == "prismatic" else self.unit_revolute
+
+    def outside_domain(self, ci) -> bool:
+        """True when the whole interval lies outside the parameter's physical domain (a negative gain, a
+        negative damping): such a term is not this effect but absorbs something else in the data."""
+        return ci[1] <= self.domain_lo
 
     @property
     def theta_neutral(self) -> float:
@@ -113,25 +119,25 @@ class Candidate:
 
 LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
     Candidate("viscous_damping", "joint friction proportional to velocity: torque −b q̇ dissipates b q̇² of power",
-              "b ≥ 0", "N m s/rad", "N s/m", "finding", 0.0, positive=True, start=_start_positive,
+              "b ≥ 0", "N m s/rad", "N s/m", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
               theta=lambda m, j: (m.damping_diag, lambda: float(m.damping_matrix()[j, j]))),
     Candidate("coulomb_friction", "dry friction of constant magnitude opposing motion: −Fc sign(q̇)",
-              "Fc ≥ 0", "N m", "N", "finding", 0.0, positive=True, start=_start_positive,
+              "Fc ≥ 0", "N m", "N", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
               theta=lambda m, j: (m.coulomb_raw, lambda: float(m.coulomb()[j]))),
     Candidate("stribeck_friction", "static friction in excess of Coulomb that vanishes above a Stribeck velocity vs: "
               "−Fs exp(−(q̇/vs)²) sign(q̇)", "Fs ≥ 0, vs > 0", "N m", "N", "finding", 0.0, positive=True,
-              shape="stribeck_vs", start=_start_positive,
+              shape="stribeck_vs", domain_lo=0.0, start=_start_positive,
               theta=lambda m, j: (m.stribeck_fs_raw, lambda: float(m.stribeck()[0][j]))),
     Candidate("actuation_delay", "the exoskeleton applies its recorded torque d seconds late: τ_e,app(t) = τ_e,rec(t−d)",
               "d ≥ 0", "s", "s", "finding", 0.0, needs_exo=True, positive=True, bounded_by_max_delay=True,
-              limit_key="d_limit", start=_start_delay,
+              limit_key="d_limit", domain_lo=0.0, start=_start_delay,
               theta=lambda m, j: (m.delay_raw, lambda: float(m.delay()[j]))),
     Candidate("torque_gain", "the torque sensor reads k times the applied exoskeleton torque",
-              "k > 0", "1", "1", "finding", 1.0, needs_exo=True, lag_free=True, start=_start_gain,
+              "k > 0", "1", "1", "finding", 1.0, needs_exo=True, lag_free=True, domain_lo=0.0, start=_start_gain,
               theta=lambda m, j: (m.gain_raw, lambda: float(1.0 / (1.0 - m.gain_term()[j])))),
     Candidate("strap_compliance", "a spring of stiffness k between exoskeleton and limb: the encoder reads the limb "
               "angle plus τ_e,app / k", "k > 0", "N m/rad", "N/m", "finding", float("inf"), needs_exo=True,
-              positive=True, inverse=True, start=_start_inverse,
+              positive=True, inverse=True, domain_lo=0.0, start=_start_inverse,
               theta=lambda m, j: (m.compliance_raw, lambda: float(m.compliance()[j]))),
     Candidate("encoder_offset", "a constant angle offset of the encoder: q_meas = q + δ", "any", "rad", "m",
               "absorbable", 0.0, start=_start_any,

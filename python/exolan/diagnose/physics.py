@@ -216,6 +216,11 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
                     f"not significant (p {pe:.3g} > Holm's threshold {thr:.3g} at step {r} of {len(cands)})"))
             break
         pool.remove((e, j))
+        if LIBRARY[e].outside_domain(te.ci):
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but outside its physical domain "
+                                              f"({LIBRARY[e].sign}): {te.estimate:.4g} [{te.ci[0]:.4g}, "
+                                              f"{te.ci[1]:.4g}]; the term absorbs something else")
+            continue
         if gain["ci"][0] <= 0:
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
                                               f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
@@ -232,7 +237,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
     res.held_rows = held_idx
     res.e_held = np.zeros(len(held_idx))
     for j in joint_ids:
-        prob, f = probs[j], probs[j].fit(accepted[j])
+        prob, f = probs[j], _physical_fit(res, probs[j], accepted[j], flat.joints[j], j)
         cur[j] = f
         for e in accepted[j]:
             res.estimates[(e, j)] = _estimate(prob, f, e, flat.joints[j])
@@ -249,6 +254,22 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
     res.seconds = time.time() - t0
     res._probs, res._fits = probs, cur      # for the cross-check and the extended model
     return res
+
+
+def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, joint: str, j: int) -> ident.Fit:
+    """The joint fit of the accepted terms, without those whose interval in it lies wholly outside their
+    physical domain (`Candidate.outside_domain`: they absorb something else), refitted until none is."""
+    while True:
+        f = prob.fit(accepted)
+        bad = [(e, te) for e in accepted for te in [_estimate(prob, f, e, joint)]
+               if LIBRARY[e].outside_domain(te.ci)]
+        if not bad:
+            return f
+        for e, te in bad:
+            accepted.remove(e)
+            res.status[(e, j)] = ("rejected", f"outside its physical domain ({LIBRARY[e].sign}) in the joint fit: "
+                                              f"{te.estimate:.4g} [{te.ci[0]:.4g}, {te.ci[1]:.4g}]; the term "
+                                              "absorbs something else")
 
 
 def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:
