@@ -385,3 +385,34 @@ def test_forward_dynamics_metrics_on_a_model_that_is_exact():
         q = q + tr.dt * qd
     assert h["4"]["n"] >= 1
     assert float(((q.numpy() - tr.q[s + 4]) ** 2).sum()) <= h["4"]["sse_q"][0] + h["4"]["sse_q"][1] + 1e-15
+
+
+def test_rollout_amplification_separates_integrated_from_compounding_errors():
+    """A persistent q̈ error is integrated as it is (A ≈ 1 at every horizon), one that flips sign every step
+    mostly cancels (A ≪ 1), and one that feeds back through the rolled-out velocity compounds (A grows with
+    the horizon): the number the report uses to say why a multi-step loss can or cannot help."""
+    from exolan import report
+
+    scale = R.SCALES["tiny"]
+    tr = fake_world(users=1, tasks=("walk",), T=200)[0]
+    T, dt, n = len(tr.q), tr.dt, tr.q.shape[1]
+    qdd = np.tile([[0.7, -0.4]], (T, 1))               # constant acceleration: semi-implicit Euler is exact
+    qd = np.cumsum(np.vstack([np.zeros((1, n)), dt * qdd[:-1]]), axis=0) + 0.2
+    q = np.cumsum(np.vstack([np.zeros((1, n)), dt * qd[1:]]), axis=0)
+    tr = dataclasses.replace(tr, q=q, qd=qd, qdd=qdd, valid=np.ones(T, bool))
+    bias = np.array([3.0, -2.0])
+
+    def amp(error):
+        def forward(q_, qd_, tau, z, fv, cx, owner, t):
+            return qdd[t] + error(qd_ - qd[t], t)
+        rows = R.rollout_metrics(forward, [("seen", tr, None)], scale)
+        st = report.fd_stats([{"fd_rows": rows, "torque_rows": []}], scale.horizons, rows[0]["dt"])
+        return [st["mean_std"][f"amp{h}"][0] for h in scale.horizons]
+
+    persistent = amp(lambda dqd, t: bias)
+    assert np.allclose(persistent, 1.0, atol=1e-9)
+    flipping = amp(lambda dqd, t: bias * np.where(t % 2 == 0, 1.0, -1.0)[:, None])
+    assert max(flipping) < 0.1
+    compounding = amp(lambda dqd, t: bias + 60.0 * dqd)
+    assert 1.0 < compounding[0] < compounding[1] < compounding[2]
+    assert compounding[2] > 3.0

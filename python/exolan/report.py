@@ -47,6 +47,7 @@ PAPER: dict[str, Any] = {
     },
     "fd_relative": {"qdd": -0.59, "qd4": -0.57, "qd10": -0.63, "qd20": -0.93, "q20": -0.60},
     "acc_per_task": {"run": {"mlp-tcn": 2841, "exolan": 1394}, "squat": {"mlp-tcn": 194, "exolan": 68}},
+    "dt": 0.005,   # 200 Hz
     "taskid": {"exolan": (0.673, 0.023), "mlp-tcn": (0.642, 0.021), "majority": 0.310,
                "majority_class": "jump_in_place"},
 }
@@ -129,8 +130,18 @@ def torque_stats(runs: list[dict], groups: dict[str, str], splits) -> dict:
     return out
 
 
-def fd_stats(runs: list[dict], horizons) -> dict:
+def amplification(qd_mse: float, qdd_mse: float, steps: int, dt: float) -> float:
+    """q̇ MSE after `steps` open-loop steps over what a persistent q̈ error of the same MSE integrates to,
+    (steps·dt)² · q̈ MSE: about 1 when the per-step error is integrated as it is, below 1 when it changes sign
+    within the horizon, far above 1 when errors compound through the rolled-out state."""
+    return float(qd_mse / ((steps * dt) ** 2 * qdd_mse))
+
+
+def fd_stats(runs: list[dict], horizons, dt: float | None = None) -> dict:
+    """Per seed and per held-out user: torque, q̈ and rollout MSEs; with the sample period `dt`, the rollout
+    amplification at every horizon (`amplification`)."""
     per_seed: dict[str, list] = {c: [] for c in FD_COLS}
+    per_seed.update({f"amp{h}": [] for h in horizons} if dt else {})
     users: dict[str, dict[str, list]] = {}
     diverged = {str(h): [] for h in horizons}
     for r in runs:
@@ -145,6 +156,8 @@ def fd_stats(runs: list[dict], horizons) -> dict:
             n = sum(x["horizons"][str(h)]["n"] for x in rows)
             bad = sum(x["horizons"][str(h)]["nonfinite"] for x in rows)
             diverged[str(h)].append(bad / n if n else float("nan"))
+            if dt:
+                per_seed[f"amp{h}"].append(amplification(per_seed[f"qd{h}"][-1], per_seed["qdd"][-1], h, dt))
         for u, rr in _by(rows, lambda x: x["subject"]).items():
             d = users.setdefault(u, {c: [] for c in FD_COLS})
             d["tau"].append(_mse([x for x in r["torque_rows"] if x["subject"] == u]))
@@ -152,7 +165,7 @@ def fd_stats(runs: list[dict], horizons) -> dict:
             for h in horizons:
                 d[f"q{h}"].append(_pooled_h(rr, h, "sse_q"))
                 d[f"qd{h}"].append(_pooled_h(rr, h, "sse_qd"))
-    return {"mean_std": {c: _ms(v) for c, v in per_seed.items() if c in per_seed},
+    return {"mean_std": {c: _ms(v) for c, v in per_seed.items() if c in FD_COLS or v},
             "per_seed": per_seed, "diverged_fraction": {h: _ms(v) for h, v in diverged.items()},
             "per_user": {u: {c: float(np.mean(v)) for c, v in d.items() if v} for u, d in users.items()}}
 
@@ -265,11 +278,12 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
                          scale.w_ms if wms is None else wms, norm)
             if rr:
                 fd[key] = {"label": label + (f" [{norm} normalisation]" if wms != 0.0 else ""), "ms_norm": norm,
-                           **fd_stats(rr, scale.horizons)}
+                           **fd_stats(rr, scale.horizons, meta.get("dt"))}
                 fd_runs[key] = (fd[key]["label"], rr)
     for mode, rows in (meta.get("reference_fd_rows") or {}).items():
         fd[f"{REFERENCE_KEY}: {mode}"] = {"label": f"the world's true leg, {mode} (reference)",
-                                          **fd_stats([{"fd_rows": rows, "torque_rows": []}], scale.horizons)}
+                                          **fd_stats([{"fd_rows": rows, "torque_rows": []}], scale.horizons,
+                                                     meta.get("dt"))}
     summary["forward_dynamics"] = fd
     summary["grad_norms"] = _grad_norms(fd_runs)
     summary["fd_claims"] = _fd_claims(fd)
@@ -869,6 +883,7 @@ def _section_forward_dynamics(scale: Scale, fd: dict, grad_norms: dict, claims: 
          "only sensor noise and the integrator: the floor of any model. The gap between the last two is what the "
          "recorded torque (filtered moments, the exoskeleton's measured torque) costs every model.", ""]
     L += _fd_table(fd)
+    L += _amplification_table(fd, scale.horizons)
     if fd:
         div = "; ".join(f"{fd[k]['label']}: " + ", ".join(f"{h} steps {_f(100 * v[0])}%"
                         for h, v in fd[k]["diverged_fraction"].items()) for k in fd)
@@ -895,6 +910,41 @@ def _fd_table(fd: dict) -> list[str]:
             continue
         L.append(f"| *paper (real data)* {label} | " + " | ".join(_f(PAPER['fd'][key][c]) for c in FD_COLS) + " |")
     return L
+
+
+def _amplification_table(fd: dict, horizons) -> list[str]:
+    """How much of each rollout error is the q̈ error integrated and how much compounds (`amplification`), and
+    the multi-step loss' change of q̇ at the last horizon split into those two factors: ours and the paper's."""
+    ours = [k for k, _, _, _ in FD_VARIANTS if k in fd and f"amp{horizons[-1]}" in fd[k]["mean_std"]]
+    if not ours:
+        return []
+    h_last = horizons[-1]
+    L = ["", f"**Rollout amplification** A_h = q̇_h MSE / ((h·dt)² · q̈ MSE): about 1 when a model's q̈ error "
+         "persists over the horizon and is simply integrated, below 1 when it changes sign within it, far above 1 "
+         "when errors compound through the rolled-out state (an unstable model). A multi-step loss can lower q̇_h "
+         "by lowering the q̈ error and by lowering A_h; the second is what a one-step loss cannot see.", "",
+         "| model | " + " | ".join(f"A_{h}" for h in horizons) + " |", "|---|" + "---|" * len(horizons)]
+    for k in ours:
+        L.append(f"| **ours** {fd[k]['label']} | " + " | ".join(_pm(fd[k]["mean_std"][f"amp{h}"]) for h in horizons)
+                 + " |")
+    P = PAPER["fd"]
+    for k, _, _, label in FD_VARIANTS:
+        if k in P:
+            L.append(f"| *paper (real data)* {label} | "
+                     + " | ".join(_f(amplification(P[k][f"qd{h}"], P[k]["qdd"], h, PAPER["dt"])) for h in horizons)
+                     + " |")
+    if "w_fd" in fd and "w_fd+w_ms" in fd:
+        def split(a, b):          # (q̈ factor, A factor, product) of b over a
+            fq = b["qdd"] / a["qdd"]
+            fa = (b[f"qd{h_last}"] / b["qdd"]) / (a[f"qd{h_last}"] / a["qdd"])
+            return fq, fa, fq * fa
+        def m(k):
+            return {c: fd[k]["mean_std"][c][0] for c in ("qdd", f"qd{h_last}")}
+        rows = (("ours", split(m("w_fd"), m("w_fd+w_ms"))), ("paper", split(P["w_fd"], P["w_fd+w_ms"])))
+        L += ["", f"The multi-step loss' change of q̇_{h_last} MSE (w_fd+w_ms over w_fd) = change of q̈ MSE x change "
+              f"of A_{h_last}: " + "; ".join(f"{who} {_pct(fq - 1)} x {_pct(fa - 1)} = {_pct(t - 1)}"
+                                           for who, (fq, fa, t) in rows) + "."]
+    return L + [""]
 
 
 def _section_task_identification(scale: Scale, ti: dict, figs: dict) -> list[str]:

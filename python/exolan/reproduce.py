@@ -295,7 +295,8 @@ def rollout_metrics(forward, items, scale: Scale) -> list[dict]:
         ok = tr.valid
         e = (qdd_hat - tr.qdd) ** 2
         n_j = tr.q.shape[1]
-        rows.append({"subject": tr.subject, "task": tr.task, "split": split, "n_qdd": int(ok.sum()),
+        rows.append({"subject": tr.subject, "task": tr.task, "split": split, "dt": float(tr.dt),
+                     "n_qdd": int(ok.sum()),
                      "sse_qdd": np.where(ok[:, None], e, 0.0).sum(axis=0).tolist(),
                      "horizons": {str(h): {"n": 0, "sse_q": [0.0] * n_j, "sse_qd": [0.0] * n_j, "nonfinite": 0}
                                   for h in scale.horizons}})
@@ -657,6 +658,16 @@ def world_reference(out: Path, scale: Scale, backend, data_dir: Path) -> dict[st
     return rows
 
 
+def _sample_period(backend, data_dir: Path, results: dict) -> float | None:
+    """The data's sample period (the rollouts' step): from the runs' rollout rows, else read from the data."""
+    for r in results.values():
+        for row in r.get("fd_rows", []):
+            if "dt" in row:
+                return float(row["dt"])
+    trials = list(backend.load(str(data_dir)))
+    return float(trials[0].dt) if trials else None
+
+
 def sweep_clock(out: Path, seconds: dict[str, float], n_run: int, where: str) -> dict:
     """Add this invocation's wall times to out/sweep_clock.json and return the totals over every invocation:
     a resumed sweep still reports what the whole sweep cost (the report prints it)."""
@@ -717,7 +728,8 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
             "workers": workers, "threads_per_worker": threads, "device": device,
             "executor": f"ray {ray_address}" if ray_address else "local process pool",
             "seconds": {"world": t_world, "runs": t_runs}, "sweep_clock": clock, "task_groups": ctx.groups,
-            "n_runs": len(specs), "failed_runs": missing, "reference_fd_rows": reference}
+            "n_runs": len(specs), "failed_runs": missing, "reference_fd_rows": reference,
+            "dt": _sample_period(be, data_dir, results) if scale.fd_study else None}
     if not write_report:
         return results
     summary = report.build(out, scale, specs, results, meta, log=log)
