@@ -33,9 +33,10 @@ QUICK = dict(steps_base=1500, steps_refit=300, hidden=32, n_boot=400, batch=2048
 
 
 def _pooled_base(model, trials, pelvis_surge: bool = True, lim_cop: bool = True):
-    """A trained DeLaN-based model with z averaged over each trial: the trials' starting codes (`fit.PooledContext`)."""
+    """A trained DeLaN-based model with z averaged over each trial: the trials' starting codes (`base.PooledContext`)."""
     from ..train import context_of
-    from .fit import DTYPE, PooledContext
+    from .base import PooledContext
+    from .flat import DTYPE
 
     if not getattr(model, "is_lagrangian", False):
         raise ValueError("diagnosis needs a DeLaN-based model: its physics is what is diagnosed")
@@ -118,7 +119,8 @@ def _save_ext(out: Path, res: dict) -> None:
             meta["subject_terms"] = who
         save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(out / "ext.safetensors"), metadata=meta)
     # the whole extended model in the engine's weight format, at the mean context of the trials
-    from .fit import SlowContextDeLaN, export_extended
+    from .base import SlowContextDeLaN
+    from .export import export_extended
     if isinstance(ext.base, SlowContextDeLaN):
         try:
             meta = {"train_note": "exolan diagnose: slow-context base at the mean trial context"}

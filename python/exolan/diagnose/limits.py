@@ -14,7 +14,9 @@ import torch
 from ..data import savgol_derivative
 from . import stats
 from .candidates import LIBRARY
-from .fit import Flat, exo_copy, extend, misfit_weights, predict, train
+from .export import extend
+from .fit import misfit_weights, predict, train
+from .flat import Flat, exo_copy
 from .refits import held_errors, refit
 from .rules import above_noise, own_variation_passes, paired_gain
 from .nulls import on_own_variation

@@ -9,7 +9,9 @@ import torch
 
 from . import stats
 from .candidates import LIBRARY, rivals
-from .fit import Flat, exo_own, extend, predict
+from .export import extend
+from .fit import predict
+from .flat import Flat, exo_own
 from .refits import held_errors, refit
 from .rules import gci, own_variation_passes, paired_gain
 from .settings import Settings
@@ -79,7 +81,7 @@ def track_lag(flat: Flat, j: int, max_lag: int = 40) -> int:
 def on_own_variation(base, flat: Flat, j: int, init: dict, e_ref: np.ndarray, held: torch.Tensor,
                      w_held: np.ndarray | None, s: Settings, refit_fn=refit) -> tuple[dict, float]:
     """Rule 3's own-variation test of a torque gain on joint j: the term refitted (warm, from `base`) on the
-    controller's own variation alone (`fit.exo_own`); its paired held-out gain over the errors `e_ref` and its k.
+    controller's own variation alone (`flat.exo_own`); its paired held-out gain over the errors `e_ref` and its k.
     One home for the data's test and the injection's (`limits_by_injection`), which must run the same test."""
     own = exo_own(flat, j)
     alone = extend(base, own, [("torque_gain", j)], init=init, max_delay=s.max_delay)

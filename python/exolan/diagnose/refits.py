@@ -12,7 +12,9 @@ import torch
 
 from ..extensions import ExtendedModel
 from . import residuals as R
-from .fit import Flat, extend, sq_errors, train
+from .export import extend
+from .fit import sq_errors, train
+from .flat import Flat
 from .settings import Settings, heartbeat, log
 
 

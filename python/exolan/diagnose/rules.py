@@ -49,7 +49,7 @@ def above_noise(g: dict, sigma_r: float, seed: int = 0, alpha: float = 0.05) -> 
 
 def own_variation_passes(g: dict, sigma_r: float, k_own: float, k_term: float) -> bool:
     """Rule 3's own-variation null for a torque gain: the same term fitted on the controller's own variation
-    alone (`fit.exo_own`) beats the reference beyond the refit noise (rule 2), *and* its gain lies on the same
+    alone (`flat.exo_own`) beats the reference beyond the refit noise (rule 2), *and* its gain lies on the same
     side of 1 as the whole term's. A sensor that over-reports (k > 1) does so on all of its torque; own
     variation that asks for k < 1 while the whole term asks for k > 1 says that the term soaks up something
     else (measured, a clean world, seed 6394, base 3000 steps: a spurious hip gain of 1.295 beside an

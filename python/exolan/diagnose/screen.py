@@ -18,7 +18,7 @@ parameter — so the correction is θ F with one scalar θ:
   shifted by −τ̇_e,j, −τ̈_e,j), by central finite differences.
 
 The gain's second feature: a gain error adds (k − 1) τ_e, and the part of τ_e that copies the joint torque
-(`fit.exo_copy`) is a function of the motion, which the fitted base has already absorbed; what it leaves is
+(`flat.exo_copy`) is a function of the motion, which the fitted base has already absorbed; what it leaves is
 (k − 1) times the controller's own variation o = τ_e − copy. Regressed on the whole τ_e (94 % copy in a
 measured world) the post-hoc θ shrinks by that share of own variation and its held-out gain drowns in noise: a planted
 hip gain of 1.92, well beyond its detection limit of 1.26, was screened out (seed 1973, notes on issue 7).
@@ -33,7 +33,8 @@ import torch
 from ..extensions import COULOMB_EPS
 from . import stats
 from .candidates import LIBRARY
-from .fit import Flat, exo_copy, predict, sample_groups
+from .fit import predict
+from .flat import Flat, exo_copy, sample_groups
 
 VS_GRID = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)   # rad/s (m/s): a log grid across plausible Stribeck velocities
 

@@ -11,7 +11,8 @@ from scipy import stats as scipy_stats
 
 from ..extensions import SIZEABLE
 from .candidates import LIBRARY
-from .fit import Flat, predict
+from .fit import predict
+from .flat import Flat
 from .inference import cochran_q, hac_step
 from .rules import gci, invariance_reason
 from .screen import features
@@ -126,7 +127,7 @@ def with_estimate(init: dict, entry: dict, j: int) -> dict:
 def _try(ss, entry, effect: str, j: int, sc: dict, form: dict, e_user, e) -> tuple[dict, list]:
     """Each form the proposal holds (a switch over some subjects' trials; every subject at their own size), refitted
     warm, and whether it beats the shared term (errors `e_user`, `e`) beyond the refit noise."""
-    from .fit import extend
+    from .export import extend
     from .refits import refit
 
     kinds = (["switch"] if "subjects" in form else []) + (["sizes"] if "users" in form else [])
