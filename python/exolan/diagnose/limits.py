@@ -138,17 +138,6 @@ def injected_limit(g0: float, se0: float, sigma_r: float, theta0: float) -> floa
     return theta0 * math.sqrt(u)
 
 
-def delayed(x: torch.Tensor, lengths, d: float, dt: float) -> torch.Tensor:
-    """x(t − d) per trial (flat rows, trials of `lengths` samples): linear interpolation between samples, held at
-    the trial's first value before its start (as `ExtendedModel` shifts the recorded exo torque)."""
-    out = []
-    for seg in torch.split(x, [int(n) for n in lengths]):
-        v = seg.numpy().astype(np.float64)
-        t = np.arange(len(v), dtype=np.float64)
-        out.append(np.interp(t - d / dt, t, v))
-    return torch.as_tensor(np.concatenate(out), dtype=x.dtype)
-
-
 @dataclass
 class InjectionFits:
     """What `limits_by_injection` fits and predicts with (tests pass stubs)."""
@@ -205,7 +194,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         inj.tau = cleaned.clone()
         for (eff, j), v in at.items():
             te = flat.tau_e[:, j]
-            inj.tau[:, j] += v * te if eff == "torque_gain" else te - delayed(te, flat.lengths, v, flat.dt)
+            inj.tau[:, j] += LIBRARY[eff].injected(te, v, flat.lengths, flat.dt)
         inj.weight = None
         base_i = copy.deepcopy(base_start)
         fits.train(base_i, inj, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
@@ -219,7 +208,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         res = {}
         for (eff, j), v in at.items():
             sc = fits.screen(ref_i, inj, eff, j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
-            if eff == "torque_gain":
+            if LIBRARY[eff].lag_free:       # a gain shows only on the controller's own variation (rule 3)
                 g, k_hat = on_own_variation(base_i, inj, j, LIBRARY[eff].screen_init(sc), e_ref, held, w, s,
                                               refit_fn=fits.refit)
                 th = fits.injected_limit(g["gain"], g["se"], sigma_r, v)
