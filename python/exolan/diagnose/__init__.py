@@ -56,7 +56,7 @@ def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dic
     """Run the diagnosis; returns the diagnosis.json dict (also written to `out` when given).
 
     Torch runs on `EXOLAN_THREADS` threads (default 1) for the call: on two cores shared with other jobs, two
-    threads made a base-fit step 6x slower than one (0.25 s vs 0.04 s, measured at a load of 9)."""
+    threads made a base-fit step slower than one (measured: docs/DIAGNOSIS.md, "Measurements behind the code")."""
     import os
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(os.environ.get("EXOLAN_THREADS", 1))))

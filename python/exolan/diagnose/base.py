@@ -9,13 +9,9 @@ cannot carry q̇ within a step. A given run (`--model`) is used the same way: it
 (averaged) over each trial and becomes that trial's code (`PooledContext`). A run's networks were trained with
 a z that moves within a stride; at the pooled z they misfit, so by default (`Settings.adapt_model`) the
 diagnosis first fits the pooled model, with the terms below, to the training segments, with its own base's
-schedule; the run's weights are the starting point (and an extended model starts there too, its terms present
-from the first step, as `refits.fresh_fit` does for a base trained here). Measured (an `exolan` run trained
-300 epochs on a world of 2 users × walk, squat, calisthenics, turn × 16 s with a knee damping of 1.06 N m s/rad,
-seed 5962; test settings): judged as given, the reference's held-out MSE was 0.0177 (N m/kg)², the refit noise
-σ_r 2.9e-4, and the damping was missed (0.60, within the noise); adapted, 2.4e-3 and 3.6e-6, and the damping was
-found at 1.05. Adapted with the refits' smaller step the damping came out 0.84 (warm start); and with a CoP
-correction that did not see z, a clean world (seed 6394) accepted a hip Coulomb friction of 0.38 N m.
+schedule; the run's weights are the starting point (and an extended model starts there too, its terms present from
+the first step, as `refits.fresh_fit` does for a base trained here; measured: docs/DIAGNOSIS.md, "Measurements
+behind the code").
 
 Why the other leg's insole force: the hip rides on the pelvis, whose vertical acceleration is set by the
 ground reaction of *both* feet (Newton on the whole body: M a_p = f_v,left + f_v,right − M g). In the hip
@@ -37,12 +33,7 @@ but a loaded foot's ground force points roughly from its centre of pressure at t
 insoles with both legs' angles give an estimate (`PelvisSurge`: eleven learned scalars, no network).
 And a foot's contact torque moves with its centre of pressure, which travels some 0.2 m from heel to toe: the
 LIM's lever arms B(q, z) see only q, so the base adds d ⊙ f_v x_cop (`cop_torque`, one scalar per joint).
-Measured (the base alone: `make_base` + `train`, 1500 steps, hidden 64, on a clean simulated world of 2 users
-× walk, squat, calisthenics, turn × 16 s, seed 12; one fit each): held-out hip MSE 8.27e-3 → 7.32e-3 (surge) →
-4.79e-3 (surge + CoP) (N m/kg)², knee 2.22e-3 → 2.04e-3 → 1.74e-3. With the world's pelvis fore-aft
-acceleration switched off, the clean hip's pseudo-damping (0.37 N m s/rad accepted in a 3-user world) and a
-+24 % bias of a planted hip Coulomb friction (2.78 → 3.46 N m) disappeared (found 2.86) — the motive for the
-term.
+Measured: docs/DIAGNOSIS.md, "Measurements behind the code".
 
 Why the insole mapping sees the centre of pressure (`Settings.lim_cop`, on by default, needs a partner: the
 CoP travels in `Flat.forces`): the insoles measure no shear, and the ground force's moment about the hip is
@@ -50,21 +41,15 @@ mostly that of its unmeasured horizontal part (a lever of the hip's height). Whe
 the stance (ahead of the hip in loading, behind it at push-off), and the stance phase is what the CoP's
 heel-to-toe travel tracks; the joint angles alone do not pin it down, and a slow context cannot carry it. So
 the lever arms are B(q, x_cop, z) (one more input to the LIM; 0 force, 0 torque, so it cannot act in swing).
-Measured (clean world seed 6394, 2 users × walk, squat, calisthenics, turn × 16 s, test settings): with B(q, z)
-the reference's held-out MSE was 4.6e-3 (N m/kg)² and a hip "viscous damping" of 0.92 N m s/rad was accepted;
-in the same world generated without the shear force's contact moment the sign of that misfit flipped — it is
-the shear's moment. With B(q, x_cop, z): 1.8e-3 (N m/kg)², the refit noise σ_r 2.1e-5 → 1.5e-6, nothing found.
+Measured: docs/DIAGNOSIS.md, "Measurements behind the code".
 The export holds the CoP input at its training mean (the engine has one insole input; the metadata says so).
 
 Optional (`Settings.pelvis_tilt`, off by default): the pelvis tilts with the hips' flexion (the trunk leans
 into squats and landings), so the thigh's angle in an inertial frame is q_hip − τ_t q_hip,other once the
 leg's own share is absorbed into its coordinates. With a partner the base can evaluate its Lagrangian at
 (q − τ_t q_o e₀, q̇ − τ_t q̇_o e₀, q̈ − τ_t q̈_o e₀), one learned scalar τ_t — a coordinate shift, even in time
-reversal, so it cannot imitate dissipation. Measured (2 users × walk, squat, calisthenics × 16 s, test
-settings, one run each): reference held-out MSE −31 % (clean, seed 11) and −24 % (hip Coulomb, seed 21);
-a clean world still finds nothing and a knee damping of 2.0 is still 1.86; but the hip's damping-like misfit
-stays (a clean hip "damping" 0.43 either way) and a planted hip Coulomb of 2.5 came out 3.40 from scratch
-(3.02 without the term) — so it is not the default.
+reversal, so it cannot imitate dissipation. Not the default: it leaves the hip's damping-like misfit and biases a
+planted hip Coulomb friction up (measured: docs/DIAGNOSIS.md, "Measurements behind the code").
 """
 from __future__ import annotations
 
@@ -84,9 +69,7 @@ class PelvisSurge(nn.Module):
     horizontal gravity (d'Alembert), τ = −a_x ∂(m x_com)/∂q. Insoles measure no shear force, but the ground
     force of a loaded foot points roughly from its centre of pressure at the body above the hip, so
     M a_x = Σ_legs f_x ≈ Σ_legs f_v (x_hip − x_cop)/h. Unmodelled, this torque (it follows the gait cycle)
-    leaves a hip residual that a damping or a Coulomb term soaks up: in a simulated world a clean hip showed
-    a "damping" of about 0.4 N m s/rad and a planted hip Coulomb friction came out +20 % (both gone when the
-    world's pelvis had no fore-aft acceleration).
+    leaves a hip residual that a damping or a Coulomb term soaks up (measured: module docstring).
 
     Form: a_x/G·M = β · Σ_legs f_v/G φ(leg) (`surge_features`, five learned slopes β shared by every trial);
     the leg's mass moment ∂(m x_com)/∂q ∝ C ψ(q), ψ = [cos q_h, cos q_h cos q_k, sin q_h sin q_k] for a two-link

@@ -185,8 +185,7 @@ LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
 # rival explanations the held-out data must separate before either is accepted. A strap and a torque gain:
 # the strap's deflection τ_e/k moves the coordinates at which the physics acts, so to first order it adds
 # −(∂τ̂/∂q) τ_e/k, a torque in proportion to the exo torque — a torque gain whose size follows the joint's
-# stiffness (measured: a strap world of k = 143 N m/rad, seed 1446, gave a knee "torque gain" of 1.5 that
-# beat its future-torque nulls)
+# stiffness (measured: docs/DIAGNOSIS.md, "Measurements behind the code")
 CONFUSABLE = [("actuation_delay", "viscous_damping"), ("coulomb_friction", "stribeck_friction"),
               ("actuation_delay", "strap_compliance"), ("torque_gain", "strap_compliance")]
 

@@ -69,10 +69,8 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     tiny H makes forward dynamics stiff enough that open-loop rollouts explode within a few steps. Because
     the predicted torque is H q̈ + (terms without q̈), the forward-dynamics error is H⁻¹ (τ − τ̂) exactly: one
     2x2 solve per sample with the H the inverse dynamics just used, no separate forward pass. Its known cost:
-    |H⁻¹ e| shrinks as H grows, so the term also pulls H up wherever a torque misfit remains. In a world with
-    a 50 ms knee delay the fitted inertia's small eigenvalue came out about 4x the world's (0.53 vs 0.13 kg m²)
-    and a from-scratch delay fit ended at 35 ms (44 ms without the term, but then H collapses at a few states
-    and rollouts diverge within 20 steps).
+    |H⁻¹ e| shrinks as H grows, so the term also pulls H up wherever a torque misfit remains (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code").
 
     Adam with minibatches; the extension's physical scalars get their own (larger) step because they are
     few and well scaled. `average=True` ends on the running mean of the weights over the second half of
@@ -96,7 +94,7 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=0.05 * lr)
     hist = []
     # averaged: the networks only. An extension's physical scalar may still be moving towards its value
-    # during a refit; its running mean would lag behind (measured: knee damping 0.96 instead of 1.8).
+    # during a refit; its running mean would lag behind (measured: docs/DIAGNOSIS.md).
     params = list(groups[0]["params"])
     avg, n_avg, start_avg = None, 0, steps // 2
     for step in range(steps):
@@ -139,7 +137,7 @@ def misfit_weights(model: nn.Module, flat: Flat) -> torch.Tensor:
     a task whose unmeasured drivers (the pelvis's horizontal acceleration and horizontal ground force in
     jumps and calisthenics) the model cannot see leaves residuals ten times the variance of walking's. In an
     unweighted fit those residuals pull a physical parameter towards whatever part of them it can mimic:
-    a planted hip Coulomb friction of 2.5 N m came out 3.00 unweighted, 2.48 weighted (one world, same fits).
+    a planted hip Coulomb friction came out 20 % high unweighted, within 1 % weighted (docs/DIAGNOSIS.md).
     Weighting each trial by its inverse misfit is the efficient estimator under such heteroscedasticity and
     a property of the joint, the same in every task, should be fitted where the model is trustworthy. The
     shrinkage (halfway to the median) keeps a trial the model happens to fit almost exactly from dominating;

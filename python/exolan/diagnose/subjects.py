@@ -23,9 +23,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
 
     An effect may sit in some users only (one user's strap, one exoskeleton unit's friction). A term shared by
     every subject then fits a diluted value that helps the subjects who have it and hurts the others, and the
-    fit weights (the base misfits those users' trials most) shrink the evidence further: a knee damping of 2.0
-    planted in one of two users came out 0.23 pooled and was rejected, its held-out gain +9.7e-4 for that user
-    and −1.8e-4 for the other (measured, test settings, world seed 31); the same user's data alone found 1.95.
+    fit weights (the base misfits those users' trials most) shrink the evidence further (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code").
 
     Per subject, the post-hoc θ of the screen's feature (its grid variant, `sc`) on the model's training
     residual, with its HAC SE. The term is gated to the subjects whose θ has the physical sign and clears
