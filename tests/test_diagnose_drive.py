@@ -17,7 +17,7 @@ import pytest
 
 from exolan.diagnose import physics
 from exolan.diagnose.candidates import FITTED
-from exolan.diagnose.fit import prepare
+from exolan.diagnose.flat import prepare
 from exolan.diagnose.synthetic import servo_drive, write_layout2
 from exolan.data import load
 

@@ -9,7 +9,10 @@ import pytest
 import torch
 
 from exolan.diagnose import stats
-from exolan.diagnose.fit import DTYPE, extend, inertia_of, make_base, prepare, sample_groups, train
+from exolan.diagnose.base import inertia_of, make_base
+from exolan.diagnose.export import extend
+from exolan.diagnose.fit import train
+from exolan.diagnose.flat import DTYPE, prepare, sample_groups
 from exolan.diagnose import refits, rules
 from exolan.diagnose.nulls import track_lag
 from exolan.diagnose.rules import above_noise, confirm, invariance_reason, invariance_rule, paired_gain
@@ -944,7 +947,7 @@ def test_track_lag_finds_where_the_exo_torque_copies_the_joint_torque(lag):
 def test_exo_copy_keeps_the_share_of_the_joint_torque_and_drops_the_controllers_own_variation():
     """The gain's third null: the exo torque replaced by its fit on the joint torque's recent past. A lagged
     share of the joint torque is kept; the controller's own slow variation is what it leaves out."""
-    from exolan.diagnose.fit import exo_copy, exo_own
+    from exolan.diagnose.flat import exo_copy, exo_own
 
     trials = _leg_pair(T=3000)
     rng = np.random.default_rng(2)
@@ -989,7 +992,7 @@ def test_the_torque_gains_detection_limit_follows_the_controllers_own_variation(
     """|1 − 1/k| below which a gain cannot show: set by the exo torque's own variation (not its copy of the joint
     torque), the model's misfit and the refit noise. Checked against the closed forms of its two regimes."""
     from exolan.diagnose import limits as P
-    from exolan.diagnose.fit import exo_copy
+    from exolan.diagnose.flat import exo_copy
 
     sigma_eps = 0.02                                         # the model's white misfit, N m/kg
     eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
@@ -1049,7 +1052,7 @@ def test_the_limits_by_injection_write_a_known_gain_and_delay_into_data_cleaned_
     far from its injection is measured again by a second injection at 1.2 times it."""
     from exolan.data import savgol_derivative
     from exolan.diagnose import limits as P
-    from exolan.diagnose.fit import exo_copy
+    from exolan.diagnose.flat import exo_copy
     from exolan.diagnose.procedure import load_trials
 
     flat = prepare(load_trials(small_world))
@@ -1118,7 +1121,7 @@ def test_the_delays_detection_limit_follows_the_rate_of_the_controllers_own_vari
     sensor's white noise, which a delay shifts without identifying anything, hardly moves it."""
     from exolan.data import savgol_derivative
     from exolan.diagnose import limits as P
-    from exolan.diagnose.fit import exo_copy
+    from exolan.diagnose.flat import exo_copy
 
     sigma_eps = 0.02
     eps = torch.as_tensor(np.random.default_rng(4).normal(0, sigma_eps, (12000, 2)), dtype=torch.float32)
@@ -1215,7 +1218,8 @@ def test_a_given_runs_base_starts_as_the_run_and_learns_the_centre_of_pressure_p
     """`--model RUN`: the pooled base predicts exactly what the run predicts until the data move it; its added
     insole correction ΔB(q, x_cop) f_v then takes up a contact torque that depends on the centre of pressure
     nonlinearly, which the run's B(q, z) and the linear CoP lever cannot (the lever alone is the control)."""
-    from exolan.diagnose.fit import PooledContext, inertia_of, predict, sq_errors
+    from exolan.diagnose.base import PooledContext, inertia_of
+    from exolan.diagnose.fit import predict, sq_errors
     from exolan.models import build_model
 
     torch.manual_seed(0)

@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from exolan.diagnose.fit import SlowContextDeLaN
+from exolan.diagnose.base import SlowContextDeLaN
 from exolan.extensions import ExtendedModel, lag_table
 
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from exolan.diagnose.fit import SlowContextDeLaN, export_extended
+from exolan.diagnose.base import SlowContextDeLaN
+from exolan.diagnose.export import export_extended
 from exolan.extensions import ExtendedModel, lag_table
 
 engine = pytest.importorskip("exolan.engine")
@@ -79,7 +80,8 @@ def test_actuation_delay_matches_the_engine(tmp_path):
 def test_a_lim_that_sees_the_centre_of_pressure_exports_at_its_training_mean(tmp_path):
     """The diagnosis base's B(q, x_cop, z): the lever arms move with the CoP; the engine (one insole input) gets the
     LIM held at the stored mean CoP, and agrees with torch there."""
-    from exolan.diagnose.fit import COP_UNIT, SURGE_FEATURES
+    from exolan.diagnose.base import COP_UNIT
+    from exolan.diagnose.flat import SURGE_FEATURES
 
     torch.manual_seed(3)
     b = SlowContextDeLaN(("revolute", "revolute"), 3, z_dim=4, hidden=16, lim=True, v_scale=5.0, lim_other=True,

@@ -33,9 +33,10 @@ QUICK = dict(steps_base=1500, steps_refit=300, hidden=32, n_boot=400, batch=2048
 
 
 def _pooled_base(model, trials, pelvis_surge: bool = True, lim_cop: bool = True):
-    """A trained DeLaN-based model with z averaged over each trial: the trials' starting codes (`fit.PooledContext`)."""
+    """A trained DeLaN-based model with z averaged over each trial: the trials' starting codes (`base.PooledContext`)."""
     from ..train import context_of
-    from .fit import DTYPE, PooledContext
+    from .base import PooledContext
+    from .flat import DTYPE
 
     if not getattr(model, "is_lagrangian", False):
         raise ValueError("diagnosis needs a DeLaN-based model: its physics is what is diagnosed")
@@ -55,7 +56,7 @@ def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dic
     """Run the diagnosis; returns the diagnosis.json dict (also written to `out` when given).
 
     Torch runs on `EXOLAN_THREADS` threads (default 1) for the call: on two cores shared with other jobs, two
-    threads made a base-fit step 6x slower than one (0.25 s vs 0.04 s, measured at a load of 9)."""
+    threads made a base-fit step slower than one (measured: docs/DIAGNOSIS.md, "Measurements behind the code")."""
     import os
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(os.environ.get("EXOLAN_THREADS", 1))))
@@ -118,7 +119,8 @@ def _save_ext(out: Path, res: dict) -> None:
             meta["subject_terms"] = who
         save_file({k: np.ascontiguousarray(v) for k, v in t.items()}, str(out / "ext.safetensors"), metadata=meta)
     # the whole extended model in the engine's weight format, at the mean context of the trials
-    from .fit import SlowContextDeLaN, export_extended
+    from .base import SlowContextDeLaN
+    from .export import export_extended
     if isinstance(ext.base, SlowContextDeLaN):
         try:
             meta = {"train_note": "exolan diagnose: slow-context base at the mean trial context"}

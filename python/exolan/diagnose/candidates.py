@@ -20,6 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
+import numpy as np
+import torch
+
 
 def _start_positive(th: float, sc: dict) -> dict:
     return {"value": th} if th > 0 else {}
@@ -41,6 +44,25 @@ def _start_delay(th: float, sc: dict) -> dict:
     return {"value": sc["d"]} if "d" in sc else {}
 
 
+def delayed(x: torch.Tensor, lengths, d: float, dt: float) -> torch.Tensor:
+    """x(t − d) per trial (flat rows, trials of `lengths` samples): linear interpolation between samples, held at
+    the trial's first value before its start (as `ExtendedModel` shifts the recorded exo torque)."""
+    out = []
+    for seg in torch.split(x, [int(n) for n in lengths]):
+        v = seg.numpy().astype(np.float64)
+        t = np.arange(len(v), dtype=np.float64)
+        out.append(np.interp(t - d / dt, t, v))
+    return torch.as_tensor(np.concatenate(out), dtype=x.dtype)
+
+
+def _inject_gain(te: torch.Tensor, th: float, lengths, dt: float) -> torch.Tensor:
+    return th * te          # a sensor over-reporting the exo torque by k = 1/(1 − θ)
+
+
+def _inject_delay(te: torch.Tensor, th: float, lengths, dt: float) -> torch.Tensor:
+    return te - delayed(te, lengths, th, dt)     # the limb feels the recorded torque θ seconds late
+
+
 @dataclass(frozen=True)
 class Candidate:
     """One effect of the vocabulary and its own behaviour in the diagnosis: how its parameter is read off a
@@ -48,8 +70,9 @@ class Candidate:
     compliance, reported as k = 1/θ: `inverse`), bounded (`positive`, a delay by the largest delay searched:
     `bounded_by_max_delay`), which nulls it faces (`needs_exo`; a gain, which has no lag of its own, also at
     the controller's tracking lag and on its own variation: `lag_free`), which shape parameter it carries
-    (`shape`: Stribeck's vs), which effects it mimics without a term (`mimics`: backlash) and which detection
-    limit warns that it reads short (`limit_key`)."""
+    (`shape`: Stribeck's vs), which effects it mimics without a term (`mimics`: backlash), which detection
+    limit warns that it reads short (`limit_key`) and how a known size of it is written into the recorded torque
+    (`inject`: the detection limits by injection)."""
     effect: str
     meaning: str
     sign: str                     # the physically valid sign of the reported parameter
@@ -69,6 +92,7 @@ class Candidate:
     domain_lo: float = -float("inf")   # the reported parameter's physical domain lies above this (`sign`)
     start: Callable | None = field(default=None, compare=False, repr=False)      # (screen θ, screen) -> {value}
     theta: Callable | None = field(default=None, compare=False, repr=False)      # (model, j) -> (raw, θ())
+    inject: Callable | None = field(default=None, compare=False, repr=False)     # (τ_e, θ, lengths, dt) -> Δτ_rec
 
     def unit(self, joint_type: str) -> str:
         return self.unit_prismatic if joint_type == "prismatic" else self.unit_revolute
@@ -88,6 +112,13 @@ class Candidate:
         if self.theta is None:
             raise ValueError(self.effect)
         return self.theta(model, j)
+
+    def injected(self, te: torch.Tensor, th: float, lengths, dt: float) -> torch.Tensor:
+        """What the effect at fitted size θ adds to the recorded joint torque, given the recorded exo torque te
+        (flat rows, trials of `lengths` samples): the detection limits by injection write it into the data."""
+        if self.inject is None:
+            raise ValueError(self.effect)
+        return self.inject(te, th, lengths, dt)
 
     def screen_init(self, sc: dict) -> dict:
         """Warm start of the physical parameter from the post-hoc screen `sc` (right sign; Stribeck's vs too)."""
@@ -130,11 +161,11 @@ LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
               theta=lambda m, j: (m.stribeck_fs_raw, lambda: float(m.stribeck()[0][j]))),
     Candidate("actuation_delay", "the exoskeleton applies its recorded torque d seconds late: τ_e,app(t) = τ_e,rec(t−d)",
               "d ≥ 0", "s", "s", "finding", 0.0, needs_exo=True, positive=True, bounded_by_max_delay=True,
-              limit_key="d_limit", domain_lo=0.0, start=_start_delay,
+              limit_key="d_limit", domain_lo=0.0, start=_start_delay, inject=_inject_delay,
               theta=lambda m, j: (m.delay_raw, lambda: float(m.delay()[j]))),
     Candidate("torque_gain", "the torque sensor reads k times the applied exoskeleton torque",
               "k > 0", "1", "1", "finding", 1.0, needs_exo=True, lag_free=True, domain_lo=0.0, start=_start_gain,
-              theta=lambda m, j: (m.gain_raw, lambda: float(1.0 / (1.0 - m.gain_term()[j])))),
+              inject=_inject_gain, theta=lambda m, j: (m.gain_raw, lambda: float(1.0 / (1.0 - m.gain_term()[j])))),
     Candidate("strap_compliance", "a spring of stiffness k between exoskeleton and limb: the encoder reads the limb "
               "angle plus τ_e,app / k", "k > 0", "N m/rad", "N/m", "finding", float("inf"), needs_exo=True,
               positive=True, inverse=True, domain_lo=0.0, start=_start_inverse,
@@ -154,8 +185,7 @@ LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
 # rival explanations the held-out data must separate before either is accepted. A strap and a torque gain:
 # the strap's deflection τ_e/k moves the coordinates at which the physics acts, so to first order it adds
 # −(∂τ̂/∂q) τ_e/k, a torque in proportion to the exo torque — a torque gain whose size follows the joint's
-# stiffness (measured: a strap world of k = 143 N m/rad, seed 1446, gave a knee "torque gain" of 1.5 that
-# beat its future-torque nulls)
+# stiffness (measured: docs/DIAGNOSIS.md, "Measurements behind the code")
 CONFUSABLE = [("actuation_delay", "viscous_damping"), ("coulomb_friction", "stribeck_friction"),
               ("actuation_delay", "strap_compliance"), ("torque_gain", "strap_compliance")]
 

@@ -8,7 +8,7 @@ import math
 
 from . import stats
 from .candidates import LIBRARY
-from .fit import extend
+from .export import extend
 from .inference import identifiable, param_by_subject, with_refit_spread
 from .refits import metrics, refit
 from .rules import gci

@@ -37,7 +37,7 @@ CUTOFF_HZ = 25.0        # default low-pass of q and τ: above a limb's or a driv
 
 @dataclass
 class Signals:
-    """Signals on the rows of a `fit.Flat` (the same order): kinematics and exo torque low-passed for
+    """Signals on the rows of a `flat.Flat` (the same order): kinematics and exo torque low-passed for
     differentiation, τ through the parallel filter (`lp`); `ok`: rows where they are usable."""
     q: np.ndarray
     qd: np.ndarray

@@ -11,7 +11,8 @@ from scipy import stats as scipy_stats
 from ..extensions import ExtendedModel
 from . import stats
 from .candidates import LIBRARY
-from .fit import DTYPE, Flat, predict
+from .fit import predict
+from .flat import DTYPE, Flat
 
 
 def sensitivity(model: ExtendedModel, flat: Flat, effect: str, j: int, idx: torch.Tensor):

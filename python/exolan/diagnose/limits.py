@@ -14,7 +14,9 @@ import torch
 from ..data import savgol_derivative
 from . import stats
 from .candidates import LIBRARY
-from .fit import Flat, exo_copy, extend, misfit_weights, predict, train
+from .export import extend
+from .fit import misfit_weights, predict, train
+from .flat import Flat, exo_copy
 from .refits import held_errors, refit
 from .rules import above_noise, own_variation_passes, paired_gain
 from .nulls import on_own_variation
@@ -46,7 +48,7 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
     estimate under the model's present misfit ε (the reference's, less its share of o, which a gain present
     in the data would put there), not a guarantee, and an optimistic one
     where the base also absorbs part of o (a saturating controller's own variation is partly a function of
-    the motion: a reference left 0.26 of a planted θ of 0.47 on o, world seed 6079): it tells the user that
+    the motion; measured: docs/DIAGNOSIS.md, "Measurements behind the code"): it tells the user that
     a gain closer to 1 than this is not a finding this data set can make.
     """
     return detection_limits(flat, model, held, w_held, sigma_r, s, predict)["torque_gain"]
@@ -60,10 +62,9 @@ def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndar
     τ_e(t) − τ_e(t−d) ≈ d τ̇_e (first order in d). As for a gain (`gain_detection_limit`), the part of τ̇_e that
     follows the joint torque's recent past is a function of the motion the base already predicts, so only the
     rate of the controller's own variation ȯ identifies d: the same detection arithmetic with x = ȯ and θ = d.
-    First order and at the base's present misfit: a delay near the limit is also estimated short (the base
-    keeps part of it; measured in 2-user, 4-task worlds of 16 s trials: planted knee delays of 21-24 ms were
-    missed or found 15-25 % short, 27-50 ms within 8 %). It tells the user that a shorter delay is not a finding
-    this data set can make, and that one near the limit is estimated with that bias.
+    First order and at the base's present misfit: a delay near the limit is also estimated short (the base keeps
+    part of it; measured: docs/DIAGNOSIS.md, "Measurements behind the code"). It tells the user that a shorter delay
+    is not a finding this data set can make, and that one near the limit is estimated with that bias.
     """
     return detection_limits(flat, model, held, w_held, sigma_r, s, predict)["actuation_delay"]
 
@@ -92,9 +93,8 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
     def theta_limit(x: np.ndarray, e: np.ndarray, w: np.ndarray) -> float | None:
         P = float(np.mean(w * x ** 2))
         # the misfit without the effect: ε less its own (weighted least-squares) share of x. Where the effect is
-        # there, the reference's ε holds part of θ x, which inflated SE(w x ε) by the effect itself (measured: a
-        # hip gain of 2.48, seed 1735, was found with a held-out gain of 35 %, own-variation null 4.0e-4
-        # [1.3e-4, 7.0e-4], while the limit computed on ε said k above 2.54)
+        # there, the reference's ε holds part of θ x, which inflated SE(w x ε) by the effect itself
+        # (docs/DIAGNOSIS.md)
         r = e - (float(np.sum(w * x * e) / np.sum(w * x ** 2)) * x if P > 0 else 0.0)
         se = float(stats.bootstrap_mean(w * x * r, n_boot=s.n_boot, seed=s.seed).get("se", np.nan))
         if not (P > 0 and np.isfinite(se)):
@@ -134,17 +134,6 @@ def injected_limit(g0: float, se0: float, sigma_r: float, theta0: float) -> floa
     z2 = 1.96 ** 2
     u = (z2 * se0 ** 2 + math.sqrt(z2 ** 2 * se0 ** 4 + 4.0 * g0 ** 2 * z2 * sigma_r ** 2)) / (2.0 * g0 ** 2)
     return theta0 * math.sqrt(u)
-
-
-def delayed(x: torch.Tensor, lengths, d: float, dt: float) -> torch.Tensor:
-    """x(t − d) per trial (flat rows, trials of `lengths` samples): linear interpolation between samples, held at
-    the trial's first value before its start (as `ExtendedModel` shifts the recorded exo torque)."""
-    out = []
-    for seg in torch.split(x, [int(n) for n in lengths]):
-        v = seg.numpy().astype(np.float64)
-        t = np.arange(len(v), dtype=np.float64)
-        out.append(np.interp(t - d / dt, t, v))
-    return torch.as_tensor(np.concatenate(out), dtype=x.dtype)
 
 
 @dataclass
@@ -187,8 +176,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
     resid = flat.tau[train_rows] - fits.predict(ref, flat, train_rows)
     cleaned = flat.tau.clone()
     for j in sorted(set(gj) | set(dj)):
-        # the data may hold the effect already, which an injection would add to (measured, the world above: a gain
-        # of 1.58 written on top of the planted 1.84 was recovered as 4.81 and the limit came out at k 1.30). So
+        # the data may hold the effect already, which an injection would add to (docs/DIAGNOSIS.md). So
         # the share of the own variation (and of its rate) that the reference leaves in its training residual
         # (least squares) comes out first, as the computed limit does: what is left is absorbed by the base anyway
         o = flat.tau_e[:, j] - exo_copy(flat, j).tau_e[:, j]
@@ -203,7 +191,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         inj.tau = cleaned.clone()
         for (eff, j), v in at.items():
             te = flat.tau_e[:, j]
-            inj.tau[:, j] += v * te if eff == "torque_gain" else te - delayed(te, flat.lengths, v, flat.dt)
+            inj.tau[:, j] += LIBRARY[eff].injected(te, v, flat.lengths, flat.dt)
         inj.weight = None
         base_i = copy.deepcopy(base_start)
         fits.train(base_i, inj, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
@@ -217,7 +205,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         res = {}
         for (eff, j), v in at.items():
             sc = fits.screen(ref_i, inj, eff, j, n_boot=max(s.n_boot // 3, 100), seed=s.seed)
-            if eff == "torque_gain":
+            if LIBRARY[eff].lag_free:       # a gain shows only on the controller's own variation (rule 3)
                 g, k_hat = on_own_variation(base_i, inj, j, LIBRARY[eff].screen_init(sc), e_ref, held, w, s,
                                               refit_fn=fits.refit)
                 th = fits.injected_limit(g["gain"], g["se"], sigma_r, v)
@@ -233,9 +221,8 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
                 g = paired_gain(e_ref, held_errors(term, inj, held, w)[1], s)
                 d_hat = term.estimate(eff, j)
                 # a delay already in the data that the base had absorbed adds to the injected one once the term
-                # is there (measured: a knee with a planted 21 ms, 21.6 ms injected, recovered 32.3 ms; scaled
-                # from the injection the limit came out 13.1 ms, where the planted 21 ms had been missed): the
-                # gain is that of the delay the term found, so it scales from the larger of the two
+                # is there (docs/DIAGNOSIS.md): the gain is that of the delay the term found, so it scales from
+                # the larger of the two
                 dl = fits.injected_limit(g["gain"], g["se"], sigma_r, max(v, d_hat))
                 res[(eff, j)] = dict(d_limit=dl, injected_d=v, recovered_d=d_hat,
                                      injected_gain=g["gain"], injected_gain_ci=g["ci"],
@@ -243,9 +230,9 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         return res
 
     first = measure(first_at)
-    # the θ² scaling holds near the injection (the base absorbs a share of it that need not be the same for a
-    # small and a large effect: measured, a clean world's hip, a gain of 5 injected → limit k 1.51): where the
-    # limit lies far from it, a second injection at the limit (1.2 times it) gives the answer
+    # the θ² scaling holds near the injection (the base absorbs a share of it that need not be the same for a small
+    # and a large effect; docs/DIAGNOSIS.md): where the limit lies far from it, a second injection at the limit (1.2
+    # times it) gives the answer
     bounds = {"torque_gain": (0.1, 0.8), "actuation_delay": (d_lo, d_hi)}
     again = {key: float(np.clip(1.2 * v["limit"], *bounds[key[0]])) for key, v in first.items()
              if not 0.6 * first_at[key] <= v["limit"] <= 1.5 * first_at[key]}

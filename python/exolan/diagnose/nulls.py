@@ -9,7 +9,9 @@ import torch
 
 from . import stats
 from .candidates import LIBRARY, rivals
-from .fit import Flat, exo_own, extend, predict
+from .export import extend
+from .fit import predict
+from .flat import Flat, exo_own
 from .refits import held_errors, refit
 from .rules import gci, own_variation_passes, paired_gain
 from .settings import Settings
@@ -79,7 +81,7 @@ def track_lag(flat: Flat, j: int, max_lag: int = 40) -> int:
 def on_own_variation(base, flat: Flat, j: int, init: dict, e_ref: np.ndarray, held: torch.Tensor,
                      w_held: np.ndarray | None, s: Settings, refit_fn=refit) -> tuple[dict, float]:
     """Rule 3's own-variation test of a torque gain on joint j: the term refitted (warm, from `base`) on the
-    controller's own variation alone (`fit.exo_own`); its paired held-out gain over the errors `e_ref` and its k.
+    controller's own variation alone (`flat.exo_own`); its paired held-out gain over the errors `e_ref` and its k.
     One home for the data's test and the injection's (`limits_by_injection`), which must run the same test."""
     own = exo_own(flat, j)
     alone = extend(base, own, [("torque_gain", j)], init=init, max_delay=s.max_delay)
@@ -101,11 +103,9 @@ def outdone_by_a_doubted_rival(results: list[dict], errors, compare) -> None:
     that its (larger) part of that signal cannot be told from model error that tracks the joint torque (the future
     exo torque explains it as well), or, for a gain, does not show in the controller's own variation. A term that
     takes a smaller part of the same signal is no better evidence for its own form: accepting it would name an
-    effect the better description has just failed to support. Measured (slow-test draw, world seed 2524, hip
-    torque gain 1.84): the gain term (k 1.68, decision gain 3.7e-4) failed its own-variation null, and a hip strap
-    of k ≈ 8300 N m/rad (a deflection of 1.6 mrad at 15 N m; decision gain 5.2e-5) passed everything alone and
-    was accepted. Pairs with a term that is not exo-driven (delay/damping) are left alone: a delay failing its
-    null supports a damping rather than casting doubt on it.
+    effect the better description has just failed to support (measured: docs/DIAGNOSIS.md, "Measurements behind the
+    code"). Pairs with a term that is not exo-driven (delay/damping) are left alone: a delay failing its null
+    supports a damping rather than casting doubt on it.
 
     `errors(effect, joint)`: the candidate's held-out decision errors (None if it was not fitted);
     `compare(e_ref, e_new)`: the paired held-out gain of e_new over e_ref (`paired_gain`). Mutates `results`.
@@ -146,7 +146,7 @@ def run_nulls(ss, results: list) -> None:
         lags = [leak_lag(ss.ref, flat, j)]
         if c.lag_free:
             # a gain has no lag of its own: its null also takes the exo torque where it copies the joint torque
-            # best (a clean world's knee "gain" 1.47 beat the residual-chosen null at 200 ms, measured)
+            # best (a clean world's knee "gain" beat the residual-chosen null; docs/DIAGNOSIS.md)
             lags = sorted({lags[0], track_lag(flat, j)})
         nulls = []
         for null, adv, what, text in [future_null(ss.base, flat, entry, j, lag, s) for lag in lags]:

@@ -217,9 +217,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
             break
         pool.remove((e, j))
         if LIBRARY[e].outside_domain(te.ci):
-            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but outside its physical domain "
-                                              f"({LIBRARY[e].sign}): {te.estimate:.4g} [{te.ci[0]:.4g}, "
-                                              f"{te.ci[1]:.4g}]; the term absorbs something else")
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but " + _outside_domain_text(e, te, ""))
             continue
         if gain["ci"][0] <= 0:
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
@@ -267,9 +265,13 @@ def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
             return f
         for e, te in bad:
             accepted.remove(e)
-            res.status[(e, j)] = ("rejected", f"outside its physical domain ({LIBRARY[e].sign}) in the joint fit: "
-                                              f"{te.estimate:.4g} [{te.ci[0]:.4g}, {te.ci[1]:.4g}]; the term "
-                                              "absorbs something else")
+            res.status[(e, j)] = ("rejected", _outside_domain_text(e, te, " in the joint fit"))
+
+
+def _outside_domain_text(e: str, te, where: str) -> str:
+    """The status of a term whose interval lies wholly outside its physical domain (selection and joint fit alike)."""
+    return (f"outside its physical domain ({LIBRARY[e].sign}){where}: {te.estimate:.4g} [{te.ci[0]:.4g}, "
+            f"{te.ci[1]:.4g}]; the term absorbs something else")
 
 
 def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:

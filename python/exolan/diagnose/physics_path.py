@@ -16,7 +16,8 @@ import torch
 from ..runio import jsonable
 from . import physics, stats
 from .candidates import LIBRARY, blank_entry
-from .fit import extend, predict
+from .export import extend
+from .fit import predict
 
 RULE = ("Physics first: every candidate term was fitted jointly with a parametric rigid-body base (inertia, "
         "gravity where it can act, a constant offset, the insole contact where there is one) by weighted least "

@@ -13,7 +13,9 @@ import torch
 from . import extended, nulls, selection, single
 from . import residuals as R
 from .candidates import LIBRARY
-from .fit import make_base, misfit_weights, prepare, sample_groups, train
+from .base import make_base
+from .fit import misfit_weights, train
+from .flat import prepare, sample_groups
 from .limits import all_limits, torque_unit
 from .refits import FitCache, metrics, refit
 from .results import public, strip
@@ -54,7 +56,7 @@ def describe_base(base, flat, s: Settings, given: bool) -> str:
 def fit_base(flat, s: Settings, model):
     """The base (slow-context DeLaN, or a given run's pooled model adapted to these data) and its state before the
     fit, from which fits from scratch start (None: a model judged as given, whose extended models are warm starts).
-    A given run's networks and the diagnosis' terms are fitted with the base's own schedule (`fit.PooledContext`)."""
+    A given run's networks and the diagnosis' terms are fitted with the base's own schedule (`base.PooledContext`)."""
     t0 = time.time()
     base = model if model is not None else make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed,
                                                      pelvis_tilt=s.pelvis_tilt, pelvis_surge=s.pelvis_surge,

@@ -12,7 +12,9 @@ import torch
 
 from ..extensions import ExtendedModel
 from . import residuals as R
-from .fit import Flat, extend, sq_errors, train
+from .export import extend
+from .fit import sq_errors, train
+from .flat import Flat
 from .settings import Settings, heartbeat, log
 
 
@@ -24,10 +26,8 @@ def held_errors(model, flat: Flat, held: torch.Tensor, w_held: np.ndarray | None
     Why the decisions weight as the fits do: the fits are weighted least squares, and a held-out criterion
     that matches their objective does not let the tasks the conservative model fits worst (unmeasured pelvis
     motion in calisthenics) dominate a gain's variance — nor lets a term that soaks up their misfit look
-    like a gain. The weights come from the base model's training residuals only. Measured, with every
-    decision so weighted: a strap of k 146 N m/rad (seed 6235), missed unweighted (its gain rested on
-    walking and squat, calisthenics' noise sank the pooled CI) while a knee "torque gain" was accepted,
-    was found, the gain rejected once the strap was modelled.
+    like a gain. The weights come from the base model's training residuals only (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code").
     """
     e = sq_errors(model, flat, held)
     return e.sum(1), (e * w_held).sum(1) if w_held is not None else e.sum(1)
@@ -82,28 +82,20 @@ def fresh_fit(flat: Flat, s: Settings, effects, init: dict, start: torch.nn.Modu
 
     With a term that an inflated inertia can mimic (`INERTIA_CONFUSED`: the actuation delay) the terms are
     fitted without the acceleration term, and the inertia is then stabilised by one more refit with it, the
-    terms frozen. The acceleration term holds H up (fit.train), and a held-up H takes part of a delay: from
-    scratch with the term, planted knee delays of 26.7 and 36.6 ms came out 18.0 and 27.7 ms; without it 26.5
-    and 33.9 ms, but H collapses at some states and rollouts diverge (q MSE at 20 steps NaN). Fitted without
-    it and then stabilised: 26.6 ms, held-out MSE 8.38e-3 against the reference's 8.45e-3, rollout q MSE at 20
-    steps 1.4e-3 against 0.9e-3 (world seed 2329). The frictions are not confused with the inertia: knee
-    damping 1.67 with the term and 1.61 without (planted 1.80), hip Coulomb 4.70 and 4.82 (planted 3.93).
+    terms frozen. The acceleration term holds H up (fit.train), and a held-up H takes part of a delay; without it
+    H collapses at some states and rollouts diverge; the frictions are not confused with the inertia (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code").
 
     The terms start at `init`, their warm estimates. A torque gain's fit from scratch is not identified by the
     data alone: along the exo torque's copy of the joint torque it trades against the scale of the base's
     dynamics, and the base absorbs part of the controller's own variation too, so the fit ends where its start
-    sends it (measured, test settings: started at 1, planted hip gains 1.87, 1.92, 2.37 and 2.24 came out
-    1.81, 1.80, 1.62 and 1.61). Its warm estimate, started where the post-hoc screen's regression on the own
-    variation points, came out below the truth (1.56, 1.74, 2.17, 1.94) and the fit from scratch started there
-    above it (2.26, 2.36, 2.61, 2.46): the reported interval, widened by the spread between the two
-    (`with_refit_spread`), held the truth in all four.
+    sends it. Its warm estimate, started where the post-hoc screen's regression on the own variation points,
+    comes out below the truth and the fit from scratch started there above it: the reported interval is widened
+    by the spread between the two (`with_refit_spread`; measured: docs/DIAGNOSIS.md, "Measurements behind the code").
 
     `confused`: the recipe, where it must be another set's (default: that of `effects`, `inertia_recipe`). A fit
     from scratch is judged against one that differs from it by its terms alone: the same seed, minibatches and
-    recipe. The recipe alone moves the held-out error: the reference (acceleration term on) and a term-free base
-    fitted with the delay's recipe differed by 8.2e-6 [-6.6e-5, 1.2e-4] (N m/kg)², misfit-weighted, 97.5 % CI
-    (world seed 3385, knee delay 36.5 ms), and the delay fitted from scratch (34.4 ms) beat the reference by
-    6.7e-5 [-8.4e-6, 1.7e-4] but that term-free base by 5.9e-5 [1.6e-5, 1.0e-4].
+    recipe. The recipe alone moves the held-out error (measured: docs/DIAGNOSIS.md, "Measurements behind the code").
     """
     m = ExtendedModel(copy.deepcopy(start), flat.n, list(effects), dt=flat.dt, max_delay=s.max_delay, init=dict(init),
                       coupled_damping=False)
@@ -134,11 +126,8 @@ def optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: boo
     A model with a term fitted from scratch is judged against the term-free base fitted with the same seed and
     recipe, but the term changes every gradient from the first step, so the two end in different optima: their
     difference carries, beside the term's gain, what another minibatch order alone would give. That noise is
-    far above the twin refits' σ_r and lies on the tasks the base extrapolates worst. Measured (knee damping
-    1.5 N m s/rad, 3 users, run, stairs up, lunge and ball toss, seed 504, test settings): term-free fits at
-    seeds 1 and 2 beat the reference by 1.7e-3 and 2.8e-3 [3.4e-4, 7.0e-3] (N m/kg)² pooled, nearly all on ball
-    tosses, and by 9.9e-5 and 1.8e-4 with the tasks combined (`balanced`); the damping fitted from scratch
-    (1.58) gained 8.0e-4 pooled and 4.4e-4 [2.7e-4, 6.2e-4] combined, in every task. Their differences to the
+    far above the twin refits' σ_r and lies on the tasks the base extrapolates worst (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code"). Their differences to the
     base judged against are the `twins` of `confirm` for every comparison of a fit from scratch with it."""
     fit = fresh_fit if fit is None else fit
     return [fit(flat, sk, (), {}, start, confused=confused) for sk in (seeds or other_seeds(s))]
@@ -164,17 +153,10 @@ def around_estimates(base, fresh: ExtendedModel, flat: Flat, s: Settings, effect
 
     The second way an extended model can confirm its terms (step 7 of `run`), when the fit from scratch does
     not: a base fitted from scratch lands in another optimum than the reference's, and the held-out error of the
-    task it extrapolates worst varies between such fits far beyond a term's gain. Measured (test settings, knee
-    damping 1.45, world seed 2281; held-out misfit-weighted MSE, squat's in brackets): reference 2.45e-3
-    (2.68e-3); the base alone from scratch at seeds 1 and 2 3.01e-3 (4.12e-3) and 2.80e-3 (3.56e-3); with the
-    damping from scratch at seeds 0 and 1 2.93e-3 (6.35e-3) and 2.69e-3 (5.20e-3), estimates 1.39 and 1.40,
-    every other task improved. Against the reference the fit from scratch lost, −4.8e-4 [−2.4e-3, 5.9e-4];
-    this model at 1.39 gained 1.2e-4 [3.0e-5, 2.1e-4] (1.7e-4 [9.4e-5, 2.5e-4] with another minibatch order).
-    The same noise works the other way too: in a knee-delay world (21.6 ms, seed 644) the fit from scratch
-    (18.6 ms) gained 2.1e-4 [1.1e-4, 3.4e-4] and this model only 1.5e-5 [−2.0e-5, 4.4e-5] (the base, fitted
-    without the delay, does not take a larger one in one refit; the free warm fit settled at 12 ms). Not the
-    reference refitted once more: this reference's own twins, refitted from it, gained 1.2e-5 to 2.6e-5 (it was
-    not converged), a bias in favour of any model with one more refit.
+    task it extrapolates worst varies between such fits far beyond a term's gain; the same noise works the other way
+    too (a fit from scratch can confirm where this model does not). Not the reference refitted once more: an
+    unconverged reference's own twins gain by one more refit alone (measured: docs/DIAGNOSIS.md, "Measurements
+    behind the code").
     """
     m = extend(base, flat, list(effects), init=fresh.subject_init(), max_delay=s.max_delay)
     with torch.no_grad():       # every term's parameter is the joint fit's

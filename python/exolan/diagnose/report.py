@@ -400,8 +400,7 @@ def markdown(rep: dict) -> str:
     ext = rep.get("extended", {})
     L += _metric_rows(rep["baseline"], ext if findings else None, U)
     # the power's interval resamples the held-out samples of one fitted model; a refit lands in another optimum
-    # whose power differs beyond it (measured, five clean worlds at the test settings: −0.40 to +0.40 W, 0.6 to
-    # 0.8 % of the input power, two intervals excluding 0), so a small power is no evidence by itself, and the
+    # whose power differs beyond it (docs/DIAGNOSIS.md), so a small power is no evidence by itself, and the
     # decisions never use it
     L.append("\nThe unexplained power's interval is over held-out samples for these fitted models only; fits from "
              "another minibatch order land elsewhere (in clean simulated worlds up to about 1 % of the input power, "

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fit import Flat
+from .flat import Flat
 from .residuals import residuals
 
 

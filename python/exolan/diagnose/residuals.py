@@ -10,7 +10,9 @@ import torch
 
 from ..extensions import ExtendedModel
 from . import stats
-from .fit import Flat, _base_of, predict
+from .base import _base_of
+from .fit import predict
+from .flat import Flat
 
 
 def residuals(model, flat: Flat, idx: torch.Tensor) -> np.ndarray:

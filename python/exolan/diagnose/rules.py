@@ -36,9 +36,8 @@ def above_noise(g: dict, sigma_r: float, seed: int = 0, alpha: float = 0.05) -> 
     quantile of the replicates each plus a normal draw of the refit noise: rule 1's percentile bound when
     σ_r → 0, and gain − 1.96 σ_r when the refit noise dominates. Not gain − 1.96 √(SE² + σ_r²): a gain that
     one task's large misfit carries is right-skewed, its percentile bound lies above that normal one, and
-    the normal bound rejected what rule 1 accepted although σ_r was a twelfth of the SE (measured: a knee
-    damping of 1.62 N m s/rad, seed 6411, gain 1.56e-3 [2.3e-4, 3.5e-3] (N m/kg)², SE 8.3e-4, σ_r 6.9e-5:
-    normal bound −5e-5).
+    the normal bound rejected what rule 1 accepted although σ_r was a twelfth of the SE (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code").
     """
     draws = g.get("draws")
     if draws is None:       # no held-out samples (`stats.bootstrap_mean` returns no replicates): no evidence
@@ -49,11 +48,10 @@ def above_noise(g: dict, sigma_r: float, seed: int = 0, alpha: float = 0.05) -> 
 
 def own_variation_passes(g: dict, sigma_r: float, k_own: float, k_term: float) -> bool:
     """Rule 3's own-variation null for a torque gain: the same term fitted on the controller's own variation
-    alone (`fit.exo_own`) beats the reference beyond the refit noise (rule 2), *and* its gain lies on the same
+    alone (`flat.exo_own`) beats the reference beyond the refit noise (rule 2), *and* its gain lies on the same
     side of 1 as the whole term's. A sensor that over-reports (k > 1) does so on all of its torque; own
     variation that asks for k < 1 while the whole term asks for k > 1 says that the term soaks up something
-    else (measured, a clean world, seed 6394, base 3000 steps: a spurious hip gain of 1.295 beside an
-    own-variation k of 0.845)."""
+    else (measured: docs/DIAGNOSIS.md, "Measurements behind the code")."""
     return bool(g["ci"][0] > 0 and above_noise(g, sigma_r) and (k_own - 1.0) * (k_term - 1.0) > 0)
 
 
@@ -87,15 +85,11 @@ def balanced(gg: dict, names: list[str], alpha: float = 0.05) -> dict:
     are shared by the groups), the interval normal at level 1 − alpha, and `above_noise` as rule 2:
     gain − z √(SE² + σ²) > 0.
 
-    Not the pooled mean, which the noisiest group dominates (measured: a 1.9 N m s/rad knee damping whose
-    walking gain was 1.6e-4 ± 5e-5 and squat's 4.2e-4 ± 2.7e-4 had a pooled CI without squat of [2e-5,
-    6.1e-4]); and not inverse-variance weights (a fixed-effect meta-analysis), which assume one gain shared by
-    every group: a real effect's gain differs between tasks, and the group measured most precisely is the most
-    stereotyped motion, where a flexible conservative model absorbs the most of a dissipative term (a periodic
-    orbit: along it almost any torque is a function of q). Measured: a planted knee damping of 1.80 N m s/rad
-    (seed 557) gained 2.1e-3 (N m/kg)² held out when fitted from scratch, of it walking -4e-5 and squat 1.1e-3;
-    with walking weighted 0.95 by its precision the warm start's gain without squat was 8.6e-5 [-1.1e-5,
-    1.8e-4] and the damping was missed (squat's z 2.8, walking's 1.2)."""
+    Not the pooled mean, which the noisiest group dominates; and not inverse-variance weights (a fixed-effect
+    meta-analysis), which assume one gain shared by every group: a real effect's gain differs between tasks, and the
+    group measured most precisely is the most stereotyped motion, where a flexible conservative model absorbs the
+    most of a dissipative term (a periodic orbit: along it almost any torque is a function of q). Measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code"."""
     w = np.array([1.0 / max(gg["sd"][g], 1e-300) for g in names])      # the floor: a noise-free group
     w /= w.sum()
     gain = float(w @ np.array([gg["gain"][g] for g in names]))
@@ -116,38 +110,29 @@ def invariance_rule(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, b
     block-bootstrap SE and refit noise: a weighted Stouffer test, every group's z-score counts alike), and, as in
     rule 2, gain − 1.96 √(SE² + σ²) > 0 with σ the twin refits' RMS difference in the same combination; and,
     given `by_group` (name → mask over the held-out samples → `param_by_group`), the rest must identify the
-    parameter on their own (θ_rest's CI excludes the no-effect value; measured: a clean world's hip "damping" of
-    0.11 N m s/rad passed on a rest gain of 2.9e-5 [7.5e-6, 5.6e-5] (N m/kg)² while walking's θ was 0.08 ± 0.16
-    and squat's 0.28 ± 0.36; a planted knee damping's walking θ excluded 0 by ten SEs). It passes by the
+    parameter on their own (θ_rest's CI excludes the no-effect value). It passes by the
     *parameter path* when the rest identify the parameter on their own and the groups agree on it: Cochran's Q of
     the per-group θ (inverse-variance weights, HAC SEs) against χ² with groups − 1 degrees of freedom (scipy),
     p > 0.05. The parameter test is the more sensitive one for a small effect: it asks only for the direction the
     residual wants, while a gain has to beat a refit's noise; a term that lives on some tasks' misfit wants a
-    different θ in each task (measured: a clean world's hip "delay" wanted 0.02 s in standing and 0.11 s in
-    calisthenics, both tight). The rest's gain must still point the right way (mean above 0): where a flexible
+    different θ in each task. The rest's gain must still point the right way (mean above 0): where a flexible
     model already represents a stereotyped motion's pseudo-dissipation (walking) the parameter step agrees with
-    anything while the gain, measured, stays at 0 or below (a clean world's hip "damping" of 0.6 N m s/rad).
+    anything while the gain stays at 0 or below (measured: docs/DIAGNOSIS.md, "Measurements behind the code").
 
     Identified by the rest means θ_rest's interval at the family-wise 95 % level excludes the no-effect value:
     `family` is the number of (effect, joint) candidates the run considers, Bonferroni, two-sided (z = 2.96 for
     16). Every candidate gets this chance to look identified in the rest, and the rest's θ is a one-step
-    estimate whose HAC SE holds the networks fixed. Measured on the saved diagnoses of 21 test-setting
-    worlds: the rest's θ of a planted friction was 6.6 to 28 SEs from 0, that of the damping- and
-    friction-like hip misfit of clean worlds 0.8 to 3.5; a clean world's hip "damping" (seed 5890) passed at
-    2.2 SEs on a walking gain of 1.2e-5 (N m/kg)².
+    estimate whose HAC SE holds the networks fixed.
 
     `param_path=False` (the caller's choice for velocity-driven terms) reports θ per group but decides by
     the gain alone: friction acts wherever the joint moves, so a real one shows a gain in walking as much
     as in calisthenics, while an exo-driven term's excitation (the exo torque's rate) is task-dependent and
-    vanishes where the actuator saturates (DIAGNOSIS_PITFALLS.md). Measured: with the parameter path open
-    to damping, a hip pseudo-damping of 0.6 N m s/rad (unobserved pelvis motion) was accepted in two of
-    four worlds (strap, hip Coulomb).
+    vanishes where the actuator saturates (DIAGNOSIS_PITFALLS.md).
 
     And a property of the joint makes no group worse: a group whose gain lies below 0 by more than its
     sampling and refit uncertainty (block-bootstrap SE and the twin refits' RMS difference on that group;
     `twins`: the per-sample held-out differences reference − twin, aligned with `d`), at a Bonferroni-corrected 95% over the groups, fails the rule. A term that soaks up the
-    misfit of some tasks typically costs accuracy on others (measured: a clean world's hip "delay" of 39 ms
-    that other tasks agreed with lost 1.2e-3 (N m/kg)² on push-pull).
+    misfit of some tasks typically costs accuracy on others.
     """
     labels = [str(g) for g in np.unique(groups)]
     out = dict(by=kind, groups={g: float(d[groups == g].mean()) for g in labels})
@@ -237,15 +222,9 @@ def confirm(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndarray, kind:
     fitted) and held-out data in several groups (tasks, or trials of one task), the decision is on the groups'
     gains combined with weights 1/SD (`balanced`), as rule 5 combines them, beyond that noise as rule 2: a
     group where the twins differ much counts little. Without twins (a given model's warm refit) the pooled
-    gain decides. Why a fit from scratch needs its own twins: in a noisier world (knee damping 1.5, seed 504,
-    test settings) term-free fits from scratch at seeds 1 and 2 beat the reference by 9.9e-5 and 1.8e-4
-    combined, as much as a real term's combined gain from scratch (4.4e-4 [2.7e-4, 6.2e-4]), and pooled by
-    1.7e-3 and 2.8e-3 [3.4e-4, 7.0e-3] at 95 %, nearly all on ball tosses.
-    Combined, not pooled, where the noise is measured: the pooled interval is set by the noisiest tasks. A hip
-    Coulomb friction of 2.5 N m in a world of running, stair climbing, lunges and ball tosses (3 users, seed
-    501, test settings; the reference's held-out error 4x the walking worlds'), the reference refitted with
-    the friction held at its estimate from scratch (2.15): pooled 2.3e-4 [-5.7e-5, 6.0e-4] (97.5 %), its SE
-    set by ball toss and lunges (group SEs 2.8e-4 and 4.9e-4, running's 2.2e-5); combined 1.6e-4, z = 5.2.
+    gain decides. Why a fit from scratch needs its own twins: term-free fits from scratch at other seeds beat the
+    reference by as much as a real term does. Combined, not pooled, where the noise is measured: the pooled
+    interval is set by the noisiest tasks (both measured: docs/DIAGNOSIS.md, "Measurements behind the code").
     The pooled gain stays in the record (`pooled`). A single group: the pooled gain, its block-bootstrap
     interval (and, given `twins`, rule 2's bound with their refit noise σ_r, the RMS of their mean differences)."""
     g = paired_gain(e_before, e_after, s, alpha=alpha)
@@ -270,14 +249,8 @@ def term_share(e_off: np.ndarray, e_with: np.ndarray, sigma_r: float, s: Setting
     (`paired_confirm`), whose noise is the spread of the paired gains: a term that steadily soaks up a small
     misfit of the base has a tiny spread, so a gain far inside the floor passed. Its own share is the size
     of the effect the term claims on these data; it is where an absorbed effect shows (the base took much of
-    it, so the paired gain is small, but the term carries all of it) and where a misfit's echo does not.
-    Measured (clean world of the slow suite, seed 900, 2 users, walk, squat, calisthenics and turns, test
-    settings; σ_r 7.5e-6 (N m/kg)², misfit-weighted): a knee Coulomb friction of 0.078 N m fitted from scratch
-    gained 8.3e-6 [4.0e-6, 1.3e-5] paired over five seeds, every seed above 0, their spread 1.3e-6, and was
-    accepted. Its own share at the reference's seed is 1.04e-5 [5.6e-6, 1.6e-5], inside the floor: rejected,
-    nothing found (599 s for the diagnosis). The knee damping of 1.5 N m s/rad that only the rescue finds (`run`'s
-    `rescue_from_scratch`) costs its fit 6.5e-3 [3.6e-3, 9.8e-3] switched off, beside σ_r 3.0e-4: found as
-    before (1.60); that world's knee Coulomb and Stribeck fits cost theirs 8.9e-5 and 3.0e-5, within the floor.
+    it, so the paired gain is small, but the term carries all of it) and where a misfit's echo does not
+    (measured: docs/DIAGNOSIS.md, "Measurements behind the code").
     """
     g = paired_gain(e_off, e_with, s)
     return dict(gain=g["gain"], ci=g["ci"], passes_floor=above_noise(g, sigma_r), refit_noise=sigma_r)

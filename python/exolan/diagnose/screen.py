@@ -18,10 +18,10 @@ parameter — so the correction is θ F with one scalar θ:
   shifted by −τ̇_e,j, −τ̈_e,j), by central finite differences.
 
 The gain's second feature: a gain error adds (k − 1) τ_e, and the part of τ_e that copies the joint torque
-(`fit.exo_copy`) is a function of the motion, which the fitted base has already absorbed; what it leaves is
-(k − 1) times the controller's own variation o = τ_e − copy. Regressed on the whole τ_e (94 % copy in a
-measured world) the post-hoc θ shrinks by that share of own variation and its held-out gain drowns in noise: a planted
-hip gain of 1.92, well beyond its detection limit of 1.26, was screened out (seed 1973, notes on issue 7).
+(`flat.exo_copy`) is a function of the motion, which the fitted base has already absorbed; what it leaves is
+(k − 1) times the controller's own variation o = τ_e − copy. Regressed on the whole τ_e the post-hoc θ shrinks by
+that share of own variation and its held-out gain drowns in noise (measured: docs/DIAGNOSIS.md, "Measurements behind
+the code").
 """
 from __future__ import annotations
 
@@ -33,7 +33,8 @@ import torch
 from ..extensions import COULOMB_EPS
 from . import stats
 from .candidates import LIBRARY
-from .fit import Flat, exo_copy, predict, sample_groups
+from .fit import predict
+from .flat import Flat, exo_copy, sample_groups
 
 VS_GRID = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)   # rad/s (m/s): a log grid across plausible Stribeck velocities
 
@@ -106,12 +107,10 @@ def screen(model, flat: Flat, effect: str, j: int, n_boot: int = 300, seed: int 
 
     Two forms: one θ for all data, and one θ per task (per trial on a single-task bench). A flexible base
     absorbs an effect unevenly: on a periodic task its context (the TCN sees the motion's history) can learn a
-    pseudo-dissipation, on a task with slow reversals it cannot, so the share left in the residual differs by
-    task and a pooled θ can help none of them. Measured (knee damping 2.24 planted, world seed 7925, test
-    settings): post-hoc θ per task 0.35 calisthenics, 2.6 squat, 0.11 turn, −0.04 walk; pooled 0.32 lost
-    held-out accuracy (−8.6e-6 (N m/kg)²) and the damping was screened out, while its joint refit gained 5.6e-4
-    [4.1e-4, 7.6e-4]. The candidate goes on when either form helps held-out data (each group's θ is fitted on
-    that group's training rows and kept at 0 where its sign is unphysical)."""
+    pseudo-dissipation, on a task with slow reversals it cannot, so the share left in the residual differs by task
+    and a pooled θ can help none of them (measured: docs/DIAGNOSIS.md, "Measurements behind the code"). The
+    candidate goes on when either form helps held-out data (each group's θ is fitted on that group's training rows
+    and kept at 0 where its sign is unphysical)."""
     tr, he = flat.index("train"), flat.index("held")
     if len(tr) > 30000:
         tr = tr[torch.linspace(0, len(tr) - 1, 30000).long()]

@@ -32,12 +32,7 @@ def paired_confirm(pairs: list, groups: np.ndarray, kind: str, s: Settings, alph
     Why paired: a term changes every gradient from the first step, so a fit with it and the term-free fit land
     in different optima; judged against term-free fits at other seeds (`optimum_twins`), the noise is that of
     two independent optima, while fits at the same seed share their minibatches, and their difference varies
-    far less between seeds. Measured (knee damping 1.5 N m s/rad, 3 users, run, stairs up, lunge, ball toss,
-    seed 504, test settings, the damping started at 0.5, seeds 0/1000/2000): stairs up's paired gains 2.7e-4,
-    2.3e-4, 3.7e-4 while the term-free fits there differed by 9e-5 and −1.7e-4; combined 3.6e-4, bound +8.6e-5
-    at 97.5 % (passes), where the cross-seed design gave 2.0e-4 [−4.4e-5, 4.5e-4] (fails; started at the
-    screen's estimate). A clean world of the same tasks (seed 502), a hip damping fitted so (started at 0.5):
-    combined 8.0e-5, bound −4.3e-5 (fails)."""
+    far less between seeds (measured: docs/DIAGNOSIS.md, "Measurements behind the code")."""
     K = len(pairs)
     D = np.array([np.asarray(f, np.float64) - np.asarray(t, np.float64) for f, t in pairs])
     e_free = np.mean([np.asarray(f, np.float64) for f, _ in pairs], axis=0)
@@ -114,8 +109,7 @@ def second_look(ss, key: tuple, init: dict, first, first_errors: tuple, level: f
         float(np.mean(ss.errors(m.without(judged))[1] - t)) for m, (_, t) in zip(models[1:], pairs[1:])])
     # the user's error must not grow (rule 1) with the model handed over: the fit at the reference's seed.
     # Not the seeds' mean: the unweighted error is pooled, so it follows the optimum each seed lands in on the
-    # worst-fitted task (measured, knee damping 1.5 world: user gains by seed 3.6e-3, -2.3e-3, -6.0e-3 (N m/kg)²
-    # while the decision's paired gains were 1.7e-4, 3.0e-4, 3.5e-4 with the tasks combined)
+    # worst-fitted task (measured: docs/DIAGNOSIS.md)
     out["user_gain_by_seed"] = [float(np.mean(a - b)) for a, b in users]
     out["user_gain"] = out["user_gain_by_seed"][0]
     out["confirmed"] = bool(out["passes"] and out["user_gain"] > 0 and out["terms_share"]["passes_floor"])

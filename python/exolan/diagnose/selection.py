@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .candidates import LIBRARY, NESTS, nested_choice, rivals
-from .fit import extend
+from .export import extend
 from .refits import refit
 from .rules import gci, invariance_reason
 from .screen import screen

@@ -11,7 +11,7 @@ import torch
 
 from . import inference, refits, rules, secondlook, subjects
 from .candidates import LIBRARY
-from .fit import Flat
+from .flat import Flat
 from .settings import Budget, Settings, log
 
 

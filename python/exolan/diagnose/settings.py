@@ -31,10 +31,10 @@ class Settings:
     max_delay: float = 0.1
     weighted: bool = True       # refits weight each trial and joint by the base's inverse misfit (fit.misfit_weights)
     decide_weighted: bool = True  # decisions on the held-out error with the fits' weights (reported gains unweighted)
-    pelvis_tilt: bool = False   # base term: the pelvis tilts with the other hip (fit.py docstring)
-    pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (fit.PelvisSurge)
+    pelvis_tilt: bool = False   # base term: the pelvis tilts with the other hip (base.py docstring)
+    pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (base.PelvisSurge)
     lim_cop: bool = True        # base: the insole mapping's lever arms see the centre of pressure, B(q, x_cop, z)
-    adapt_model: bool = True    # a given model (`--model`): fit it at its pooled context first (fit.PooledContext)
+    adapt_model: bool = True    # a given model (`--model`): fit it at its pooled context first (base.PooledContext)
     inject_gain: bool = False   # the gain's detection limit also by injection and recovery (refits; only when asked)
     inject_delay: bool = False  # the same for the actuation delay's (off: a delay already in the data confounds it)
     physics_first: bool = True  # size every candidate against a parametric rigid-body base first (`physics`)

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from .candidates import LIBRARY, blank_entry
-from .fit import extend
+from .export import extend
 from .inference import identifiable
 from .refits import refit
 from .rules import gci, invariance_reason

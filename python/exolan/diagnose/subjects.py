@@ -11,7 +11,8 @@ from scipy import stats as scipy_stats
 
 from ..extensions import SIZEABLE
 from .candidates import LIBRARY
-from .fit import Flat, predict
+from .fit import predict
+from .flat import Flat
 from .inference import cochran_q, hac_step
 from .rules import gci, invariance_reason
 from .screen import features
@@ -22,9 +23,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
 
     An effect may sit in some users only (one user's strap, one exoskeleton unit's friction). A term shared by
     every subject then fits a diluted value that helps the subjects who have it and hurts the others, and the
-    fit weights (the base misfits those users' trials most) shrink the evidence further: a knee damping of 2.0
-    planted in one of two users came out 0.23 pooled and was rejected, its held-out gain +9.7e-4 for that user
-    and −1.8e-4 for the other (measured, test settings, world seed 31); the same user's data alone found 1.95.
+    fit weights (the base misfits those users' trials most) shrink the evidence further (measured:
+    docs/DIAGNOSIS.md, "Measurements behind the code").
 
     Per subject, the post-hoc θ of the screen's feature (its grid variant, `sc`) on the model's training
     residual, with its HAC SE. The term is gated to the subjects whose θ has the physical sign and clears
@@ -126,7 +126,7 @@ def with_estimate(init: dict, entry: dict, j: int) -> dict:
 def _try(ss, entry, effect: str, j: int, sc: dict, form: dict, e_user, e) -> tuple[dict, list]:
     """Each form the proposal holds (a switch over some subjects' trials; every subject at their own size), refitted
     warm, and whether it beats the shared term (errors `e_user`, `e`) beyond the refit noise."""
-    from .fit import extend
+    from .export import extend
     from .refits import refit
 
     kinds = (["switch"] if "subjects" in form else []) + (["sizes"] if "users" in form else [])
