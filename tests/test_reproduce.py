@@ -308,8 +308,8 @@ def test_paired_statistics():
     r = report.paired(a, b, [1.0, 1.1], [2.0, 2.2])
     assert r["rel_change"] < 0 and r["users_better"] == 7
     assert r["p_wilcoxon_users"] == pytest.approx(1 / 64)  # exact two-sided, all 7 in one direction
-    assert report._holds(r, -0.05) == "holds"
-    assert report._holds(r, +0.05) == "reversed (significant)"
+    assert report.stats._holds(r, -0.05) == "holds"
+    assert report.stats._holds(r, +0.05) == "reversed (significant)"
 
 
 def test_verdict_needs_a_size_that_matters():
