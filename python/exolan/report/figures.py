@@ -24,6 +24,7 @@ def _arrays(results, specs, dataset, arch, lim, w_fd, w_ms, seed, ms_norm="state
     return {}
 
 
+JOINTS = ("hip", "knee")
 # the three forward-dynamics variants as plotted: key, legend, colour and line style (distinct line styles
 # too: variants trained for few epochs can overlap almost exactly)
 _FD_PLOT = (("inverse", "inverse loss only", "tab:red", "-"), ("w_fd", "+ w_fd", "tab:green", "--"),
@@ -76,31 +77,39 @@ def _fig_mse_bars(figdir: Path, scale: Scale, methods: dict) -> str | None:
     return _save(fig, figdir / "mse_bars.png", plt)
 
 
+def _task_joint_grid(tasks: list[str], row_height: float, ylabel: str, draw, path: Path) -> str:
+    """One row per task, hip and knee side by side; `draw(ax, task, j)` fills a panel (and sets its title)."""
+    plt = _plt()
+    fig, axes = plt.subplots(len(tasks), 2, figsize=(12, row_height * len(tasks) + 0.6), squeeze=False)
+    for i, task in enumerate(tasks):
+        for j in range(2):
+            ax = axes[i, j]
+            draw(ax, task, j)
+            ax.set_ylabel(ylabel)
+            if i == len(tasks) - 1:
+                ax.set_xlabel("time [s]")
+    axes[0, 0].legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path, plt)
+
+
 def _fig_torque_tasks(figdir: Path, ea: dict, ma: dict) -> str | None:
     """Torque trajectories of ExoLaN (`ea`) vs MLP-TCN (`ma`), both + LIM, for the tasks the arrays hold."""
     tasks = sorted({k.split("/")[1] for k in ea if k.startswith("torque/")},
                    key=lambda t: (PLOT_TASKS.index(t) if t in PLOT_TASKS else 99, t))
     if not tasks:
         return None
-    plt = _plt()
-    fig, axes = plt.subplots(len(tasks), 2, figsize=(12, 2.4 * len(tasks) + 0.6), squeeze=False)
-    for i, task in enumerate(tasks):
+
+    def draw(ax, task, j):
         t = ea[f"torque/{task}/t"]
         subj = str(ea.get(f"torque/{task}/subject", ""))
-        for j, joint in enumerate(("hip", "knee")):
-            ax = axes[i, j]
-            ax.plot(t, ea[f"torque/{task}/meas"][:, j], "k-", lw=1.6, label="measured (inverse dynamics + exo)")
-            ax.plot(t, ea[f"torque/{task}/pred"][:, j], "-", color="tab:blue", lw=1.1, label="ExoLaN + LIM")
-            if f"torque/{task}/pred" in ma:
-                ax.plot(ma[f"torque/{task}/t"], ma[f"torque/{task}/pred"][:, j], "--", color="tab:orange",
-                        lw=1.1, label="MLP-TCN + LIM")
-            ax.set_title(f"{task}, {joint} ({subj}, held-out user)")
-            ax.set_ylabel("torque [N m]")
-            if i == len(tasks) - 1:
-                ax.set_xlabel("time [s]")
-    axes[0, 0].legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    return _save(fig, figdir / "torque_tasks.png", plt)
+        ax.plot(t, ea[f"torque/{task}/meas"][:, j], "k-", lw=1.6, label="measured (inverse dynamics + exo)")
+        ax.plot(t, ea[f"torque/{task}/pred"][:, j], "-", color="tab:blue", lw=1.1, label="ExoLaN + LIM")
+        if f"torque/{task}/pred" in ma:
+            ax.plot(ma[f"torque/{task}/t"], ma[f"torque/{task}/pred"][:, j], "--", color="tab:orange",
+                    lw=1.1, label="MLP-TCN + LIM")
+        ax.set_title(f"{task}, {JOINTS[j]} ({subj}, held-out user)")
+    return _task_joint_grid(tasks, 2.4, "torque [N m]", draw, figdir / "torque_tasks.png")
 
 
 def _fig_accelerations(figdir: Path, va: dict[str, dict]) -> str | None:
@@ -108,32 +117,24 @@ def _fig_accelerations(figdir: Path, va: dict[str, dict]) -> str | None:
     acc_tasks = [t for t in ("walk", "squat", "run") if any(f"acc/{t}/t" in a for a in va.values())]
     if not acc_tasks:
         return None
-    plt = _plt()
-    fig, axes = plt.subplots(len(acc_tasks), 2, figsize=(12, 2.6 * len(acc_tasks) + 0.6), squeeze=False)
-    for i, task in enumerate(acc_tasks):
-        for j, joint in enumerate(("hip", "knee")):
-            ax = axes[i, j]
-            meas = None
-            for k, lab, col, ls in _FD_PLOT:
-                a = va[k]
-                if f"acc/{task}/t" not in a:
-                    continue
-                meas = a[f"acc/{task}/meas"][:, j]
-                ax.plot(a[f"acc/{task}/t"], a[f"acc/{task}/pred"][:, j], ls, color=col, lw=1.2,
-                        label=f"ExoLaN {lab}")
-                tt = a[f"acc/{task}/t"]
-            if meas is not None:
-                ax.plot(tt, meas, "k-", lw=1.6, label="measured (Savitzky-Golay)")
-                lo, hi = np.nanmin(meas), np.nanmax(meas)
-                pad = 0.5 * (hi - lo + 1e-9)
-                ax.set_ylim(lo - pad, hi + pad)  # a diverging model would otherwise flatten the trace
-            ax.set_title(f"{task}, {joint}: forward dynamics q̈ (held-out user; y-axis clipped)")
-            ax.set_ylabel("q̈ [rad/s²]")
-            if i == len(acc_tasks) - 1:
-                ax.set_xlabel("time [s]")
-    axes[0, 0].legend(loc="upper right", fontsize=8)
-    fig.tight_layout()
-    return _save(fig, figdir / "accelerations.png", plt)
+
+    def draw(ax, task, j):
+        meas = None
+        for k, lab, col, ls in _FD_PLOT:
+            a = va[k]
+            if f"acc/{task}/t" not in a:
+                continue
+            meas = a[f"acc/{task}/meas"][:, j]
+            ax.plot(a[f"acc/{task}/t"], a[f"acc/{task}/pred"][:, j], ls, color=col, lw=1.2,
+                    label=f"ExoLaN {lab}")
+            tt = a[f"acc/{task}/t"]
+        if meas is not None:
+            ax.plot(tt, meas, "k-", lw=1.6, label="measured (Savitzky-Golay)")
+            lo, hi = np.nanmin(meas), np.nanmax(meas)
+            pad = 0.5 * (hi - lo + 1e-9)
+            ax.set_ylim(lo - pad, hi + pad)  # a diverging model would otherwise flatten the trace
+        ax.set_title(f"{task}, {JOINTS[j]}: forward dynamics q̈ (held-out user; y-axis clipped)")
+    return _task_joint_grid(acc_tasks, 2.6, "q̈ [rad/s²]", draw, figdir / "accelerations.png")
 
 
 def _fig_rollouts(figdir: Path, va: dict[str, dict]) -> str | None:
