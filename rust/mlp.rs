@@ -165,11 +165,11 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
             // rev: the same blocks last to first (independent outputs, so the same bits; see `eval`)
             let n32 = out / 32;
             for b in 0..n32 {
-                block512::<NT, 4, NT>(d, x, y, 32 * if rev { n32 - 1 - b } else { b });
+                block512::<NT, 4>(d, x, y, 32 * if rev { n32 - 1 - b } else { b });
             }
             i0 = 32 * n32;
             while i0 + 8 <= out {
-                block512::<NT, 1, NT>(d, x, y, i0);
+                block512::<NT, 1>(d, x, y, i0);
                 i0 += 8;
             }
         }
@@ -187,24 +187,21 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
     }
 }
 
-/// `block` for 8·R outputs in R zmm registers per block (the bias on blocks 0, EVERY, 2·EVERY, …: several
-/// samples' value-and-tangent blocks side by side), written with intrinsics: the compiler
+/// `block` for 8·R outputs in R zmm registers per block, written with intrinsics: the compiler
 /// does not vectorise the generic `block` at these widths (it spilled 96 accumulators to the stack).
 /// The same fused operations in the same order as `block::<NT, true, _>`, so the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+pub(crate) unsafe fn block512<const NT: usize, const R: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
     use std::arch::x86_64::*;
     let (inp, out) = (d.inp, d.out);
     assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + 8 * R <= out);
     assert!(d.wt.len() >= inp * out && d.b.len() >= out);
     let mut acc = [[_mm512_setzero_pd(); R]; NT];
-    for k in (0..NT).step_by(EVERY) {
-        for r in 0..R {
-            // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
-            acc[k][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
-        }
+    for r in 0..R {
+        // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
+        acc[0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
     }
     let (wt, xp) = (d.wt.as_ptr(), x.as_ptr());
     for j in 0..inp {
@@ -222,52 +219,6 @@ pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usiz
     for k in 0..NT {
         for r in 0..R {
             unsafe { _mm512_storeu_pd(y.as_mut_ptr().add(k * out + i0 + 8 * r), acc[k][r]) };
-        }
-    }
-}
-
-/// `block512` for G samples at once, each with its own NB blocks (value, tangents) at `xs[e]`/`ys[e]`
-/// (`inp`/`out` apart, the bias on block 0): every weight is loaded once for all G·NB columns. The same
-/// operations in the same order as `block512` on each sample alone, so the same bits.
-/// SAFETY (caller): `xs[e]` holds NB·inp readable values and `ys[e]` NB·out writable ones, i0 + 8·R <= out.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-pub(crate) unsafe fn block512_samples<const G: usize, const NB: usize, const R: usize>(
-    d: &Dense,
-    xs: &[*const f64; G],
-    ys: &[*mut f64; G],
-    i0: usize,
-) {
-    use std::arch::x86_64::*;
-    let (inp, out) = (d.inp, d.out);
-    assert!(d.wt.len() >= inp * out && d.b.len() >= out && i0 + 8 * R <= out);
-    let mut acc = [[[_mm512_setzero_pd(); R]; NB]; G];
-    for e in 0..G {
-        for r in 0..R {
-            acc[e][0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
-        }
-    }
-    let wt = d.wt.as_ptr();
-    for j in 0..inp {
-        let mut w = [_mm512_setzero_pd(); R];
-        for r in 0..R {
-            w[r] = unsafe { _mm512_loadu_pd(wt.add(j * out + i0 + 8 * r)) };
-        }
-        for e in 0..G {
-            for k in 0..NB {
-                let xk = _mm512_set1_pd(unsafe { *xs[e].add(k * inp + j) });
-                for r in 0..R {
-                    acc[e][k][r] = _mm512_fmadd_pd(w[r], xk, acc[e][k][r]);
-                }
-            }
-        }
-    }
-    for e in 0..G {
-        for k in 0..NB {
-            for r in 0..R {
-                unsafe { _mm512_storeu_pd(ys[e].add(k * out + i0 + 8 * r), acc[e][k][r]) };
-            }
         }
     }
 }
