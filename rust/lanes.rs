@@ -26,6 +26,9 @@ pub(crate) struct LaneBufs {
     zb: [Vec<f64>; 3],
     phi: Vec<f64>,
     dphi: Vec<f64>,
+    /// V's activations per layer (value only) and its reverse pass's two buffers.
+    v: Vec<Vec<f64>>,
+    dv: [Vec<f64>; 2],
 }
 
 /// Whether `eval_lanes` handles this model (value + up to 3 tangents: n ≤ 3).
@@ -51,6 +54,8 @@ impl LaneBufs {
             zb: nets(m).map(|n| vec![0.0; n.map_or(0, |n| n.layers[0].out) * L]),
             phi: vec![0.0; m.dphi * L],
             dphi: vec![0.0; 2 * m.n * L],
+            v: m.net_v.layers.iter().map(|l| vec![0.0; l.out * L]).collect(),
+            dv: [0, 1].map(|_| vec![0.0; widest.max(m.net_v.layers[0].out) * L]),
         }
     }
 }
@@ -229,6 +234,73 @@ fn net_lanes<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f6
     }
 }
 
+/// `mlp::dot8` lane by lane: Σ_i w[i] x[i] (x [i][lane]) with 8 partial sums and the same tree.
+#[inline(always)]
+fn dot8_lanes<const FMA: bool>(w: &[f64], x: &[f64]) -> [f64; L] {
+    let mut acc = [[0.0f64; L]; 8];
+    let full = w.len() / 8 * 8;
+    let x = &x[..w.len() * L];
+    for c in (0..full).step_by(8) {
+        for p in 0..8 {
+            let xi: &[f64; L] = x[(c + p) * L..(c + p + 1) * L].try_into().unwrap();
+            for l in 0..L {
+                acc[p][l] = madd::<FMA>(w[c + p], xi[l], acc[p][l]);
+            }
+        }
+    }
+    for p in 0..w.len() - full {
+        let xi: &[f64; L] = x[(full + p) * L..(full + p + 1) * L].try_into().unwrap();
+        for l in 0..L {
+            acc[p][l] = madd::<FMA>(w[full + p], xi[l], acc[p][l]);
+        }
+    }
+    std::array::from_fn(|l| ((acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l])) + ((acc[4][l] + acc[5][l]) + (acc[6][l] + acc[7][l])))
+}
+
+/// `delan::v_pass` over the lanes: V forward on the value, one reverse pass; V and its raw gradient
+/// are left in `s.a` ([0] V, [1 + k] ∂V/∂q_k, each LANES wide).
+#[inline(always)]
+fn v_lanes<const FMA: bool, const WIDE: bool>(m: &Model, s: &mut LaneBufs) {
+    let layers = &m.net_v.layers;
+    first_lanes::<FMA>(&layers[0], &s.zb[1], &s.phi, &s.dphi, &m.phi_cols, 1, &mut s.v[0]);
+    for l in 1..layers.len() {
+        let (prev, next) = s.v.split_at_mut(l);
+        tanh_tangent::<FMA>(&mut prev[l - 1], layers[l - 1].out * L, 1);
+        dense_lanes::<FMA, WIDE>(&layers[l], 1, &prev[l - 1], &mut next[0]);
+    }
+    s.a[..L].copy_from_slice(&s.v[layers.len() - 1][..L]);
+    let [mut dy, mut dx] = std::mem::take(&mut s.dv);
+    dy[..L].fill(1.0);
+    for l in (1..layers.len()).rev() {
+        let (d, h) = (&layers[l], &s.v[l - 1]);
+        for j in 0..d.inp {
+            let t = dot8_lanes::<FMA>(&d.wt[j * d.out..(j + 1) * d.out], &dy);
+            for e in 0..L {
+                let hj = h[j * L + e];
+                dx[j * L + e] = t[e] * (1.0 - hj * hj);
+            }
+        }
+        std::mem::swap(&mut dy, &mut dx);
+    }
+    let l0 = &layers[0];
+    for (k, &(ca, cb)) in m.phi_cols.iter().enumerate() {
+        let (va, vb) = (&s.dphi[2 * k * L..(2 * k + 1) * L], &s.dphi[(2 * k + 1) * L..(2 * k + 2) * L]);
+        let ga = dot8_lanes::<FMA>(l0.col(ca), &dy);
+        let g = &mut s.a[(1 + k) * L..(2 + k) * L];
+        if cb == usize::MAX {
+            for e in 0..L {
+                g[e] = ga[e] * va[e];
+            }
+        } else {
+            let gb = dot8_lanes::<FMA>(l0.col(cb), &dy);
+            for e in 0..L {
+                g[e] = madd::<FMA>(gb[e], vb[e], ga[e] * va[e]);
+            }
+        }
+    }
+    s.dv = [dy, dx];
+}
+
 /// The first layers' z parts (b + W_z z) of lanes with per-step contexts `zs`, also written to each
 /// workspace as `set_z` would (z, its flag, zb_*); without `zs`, the workspaces' own are gathered.
 #[inline(always)]
@@ -292,7 +364,11 @@ fn eval_lanes<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace
     for (t, net) in nets(m).iter().enumerate() {
         let Some(net) = net else { continue };
         let ntn = if t == 2 { 1 } else { nt };
-        net_lanes::<FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a, &mut s.b);
+        if t == 1 {
+            v_lanes::<FMA, WIDE>(m, &mut s);
+        } else {
+            net_lanes::<FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a, &mut s.b);
+        }
         let out = net.d_out();
         for (l, &w) in idx.iter().enumerate() {
             let ws = &mut wss[w];

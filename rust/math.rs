@@ -81,13 +81,31 @@ pub(crate) fn exp_clamped<const FMA: bool>(y: f64) -> f64 {
     two_k + two_k * em
 }
 
+/// 1/d for d in [2, 2^60] (tanh's denominator) by Newton–Raphson from the bit-trick estimate
+/// (|1 − d y| ≤ 0.051): two cubic steps (error e → e³) and one quadratic leave < 1e-23 before rounding.
+/// Nine fused operations instead of a division (16 cycles per 8 values at 512 bits, ~40 % of tanh),
+/// the same bits at every vector width. NaN propagates.
+#[inline(always)]
+fn recip_tanh_den(d: f64) -> f64 {
+    let mut y = f64::from_bits(0x7FDE_6238_22FC_16E6u64.wrapping_sub(d.to_bits()));
+    for _ in 0..2 {
+        let e = (-d).mul_add(y, 1.0);
+        y = y.mul_add(e.mul_add(e, e), y);
+    }
+    let e = (-d).mul_add(y, 1.0);
+    y.mul_add(e, y)
+}
+
 /// tanh(x), a few ulp from libm.
 #[inline(always)]
 pub(crate) fn tanh<const FMA: bool>(x: f64) -> f64 {
     // |x| ≥ 20: tanh rounds to ±1 in f64; clamping keeps exp finite.
     let a = if x.abs() > 20.0 { 20.0 } else { x.abs() }; // NaN propagates (min() would drop it)
     let em = expm1_clamped::<FMA>(2.0 * a);
-    let t = em / (em + 2.0);
+    // without FMA the Newton steps would lose their accuracy: divide there
+    let t = if FMA { em * recip_tanh_den(em + 2.0) } else { em / (em + 2.0) };
+    // the product may round above 1 where the quotient rounds to 1 (written so that NaN stays)
+    let t = if t > 1.0 { 1.0 } else { t };
     t.copysign(x)
 }
 

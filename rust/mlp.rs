@@ -152,6 +152,24 @@ fn narrow<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64],
     }
 }
 
+/// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and `narrow`'s tree:
+/// the dot products of the reverse pass (`delan::v_pass`; lane by lane in `lanes.rs`).
+#[inline(always)]
+pub(crate) fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 8];
+    let mut wc = w.chunks_exact(8);
+    let mut xc = x[..w.len()].chunks_exact(8);
+    for (w8, x8) in (&mut wc).zip(&mut xc) {
+        for l in 0..8 {
+            acc[l] = madd::<FMA>(w8[l], x8[l], acc[l]);
+        }
+    }
+    for (l, (wi, xi)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
+        acc[l] = madd::<FMA>(*wi, *xi, acc[l]);
+    }
+    ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
+}
+
 /// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
 /// outputs (`WIDE`: 32, 16 and 8 outputs in 512-bit registers), then of 4, then the narrow path.
 #[inline(always)]
