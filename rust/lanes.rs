@@ -1,7 +1,7 @@
 //! Batched passes with SIMD lanes across samples: up to [`LANES`] workspaces evaluated together, every
 //! activation stored [block][unit][lane] (block 0 the value, block k+1 its q_k-tangent). Each hidden
 //! layer is then a register-blocked small GEMM in which every weight is broadcast once for all lanes,
-//! and tanh, φ's first layers and the output layers run vectorised over the lanes too.
+//! and tanh, φ's first layers, the output layers and V's reverse pass run vectorised over the lanes too.
 //!
 //! Each lane performs exactly the operations of `delan::eval` on its own sample, in the same order
 //! (every block output's sum over the inputs in order as `mlp::block`, the last `out % 4` outputs'
@@ -130,6 +130,11 @@ fn gemm_range<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: 
     if WIDE {
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
         unsafe {
+            // value only: 16 accumulators, enough independent FMA chains for the latency
+            while NT == 1 && i0 + 16 <= nb {
+                gemm512::<NT, 16>(d, x, y, i0);
+                i0 += 16;
+            }
             while i0 + 8 <= nb {
                 gemm512::<NT, 8>(d, x, y, i0);
                 i0 += 8;
@@ -150,25 +155,17 @@ fn gemm_range<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: 
     }
 }
 
-/// `mlp::narrow` lane by lane for outputs i0..: 8 partial sums (input j into sum j mod 8), same tree.
+/// `mlp::narrow` lane by lane for outputs i0..: `dot8` (8 partial sums, the same tree), then + b on block 0.
 #[inline(always)]
 fn narrow_lanes<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64], i0: usize) {
     let (inp, out) = (d.inp, d.out);
     for i in i0..out {
         let wr = &d.rows[i * inp..(i + 1) * inp];
         for k in 0..nt {
-            let mut acc = [[0.0f64; L]; 8];
-            for (j, &w) in wr.iter().enumerate() {
-                let xj = &x[(k * inp + j) * L..(k * inp + j + 1) * L];
-                for l in 0..L {
-                    acc[j % 8][l] = madd::<FMA>(w, xj[l], acc[j % 8][l]);
-                }
-            }
+            let s = dot8_lanes::<FMA>(wr, &x[k * inp * L..(k + 1) * inp * L]);
             let yi = &mut y[(k * out + i) * L..(k * out + i + 1) * L];
             for l in 0..L {
-                let a = |p: usize| acc[p][l];
-                let s = ((a(0) + a(1)) + (a(2) + a(3))) + ((a(4) + a(5)) + (a(6) + a(7)));
-                yi[l] = if k == 0 { d.b[i] + s } else { s };
+                yi[l] = if k == 0 { d.b[i] + s[l] } else { s[l] };
             }
         }
     }
