@@ -10,7 +10,7 @@
 use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
 use crate::lanes::LaneBufs;
-use crate::mlp::{dot8, mlp_rest, Dense, Mlp};
+use crate::mlp::{back_tanh, dot8, mlp_rest, Dense, Mlp};
 use crate::model::Model;
 use crate::simd::simd_dispatch;
 
@@ -282,10 +282,7 @@ fn v_pass<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, rev:
     let [mut dy, mut dx] = std::mem::take(&mut ws.dv);
     dy[0] = 1.0;
     for l in (1..layers.len()).rev() {
-        let (d, h) = (&layers[l], &ws.bufs_v[l - 1]);
-        for j in 0..d.inp {
-            dx[j] = dot8::<FMA>(&d.wt[j * d.out..(j + 1) * d.out], &dy) * (1.0 - h[j] * h[j]);
-        }
+        back_tanh::<FMA, WIDE>(&layers[l], &dy, &ws.bufs_v[l - 1], &mut dx);
         std::mem::swap(&mut dy, &mut dx);
     }
     let l0 = &layers[0];

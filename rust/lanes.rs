@@ -231,27 +231,37 @@ fn net_lanes<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f6
     }
 }
 
-/// `mlp::dot8` lane by lane: Σ_i w[i] x[i] (x [i][lane]) with 8 partial sums and the same tree.
+/// `mlp::dot8` lane by lane for J weight vectors at once (sharing the loads of x [i][lane]): Σ_i w[i] x[i]
+/// with 8 partial sums (term i into sum i mod 8) and the same tree.
 #[inline(always)]
-fn dot8_lanes<const FMA: bool>(w: &[f64], x: &[f64]) -> [f64; L] {
-    let mut acc = [[0.0f64; L]; 8];
-    let full = w.len() / 8 * 8;
-    let x = &x[..w.len() * L];
-    for c in (0..full).step_by(8) {
-        for p in 0..8 {
-            let xi: &[f64; L] = x[(c + p) * L..(c + p + 1) * L].try_into().unwrap();
+fn dot8_lanes_n<const FMA: bool, const J: usize>(w: [&[f64]; J], x: &[f64]) -> [[f64; L]; J] {
+    let m = w[0].len();
+    let mut acc = [[[0.0f64; L]; 8]; J];
+    let full = m / 8 * 8;
+    let x = &x[..m * L];
+    let mut term = |i: usize, p: usize| {
+        let xi: &[f64; L] = x[i * L..(i + 1) * L].try_into().unwrap();
+        for q in 0..J {
+            let wi = w[q][i];
             for l in 0..L {
-                acc[p][l] = madd::<FMA>(w[c + p], xi[l], acc[p][l]);
+                acc[q][p][l] = madd::<FMA>(wi, xi[l], acc[q][p][l]);
             }
         }
-    }
-    for p in 0..w.len() - full {
-        let xi: &[f64; L] = x[(full + p) * L..(full + p + 1) * L].try_into().unwrap();
-        for l in 0..L {
-            acc[p][l] = madd::<FMA>(w[full + p], xi[l], acc[p][l]);
+    };
+    for c in (0..full).step_by(8) {
+        for p in 0..8 {
+            term(c + p, p);
         }
     }
-    std::array::from_fn(|l| ((acc[0][l] + acc[1][l]) + (acc[2][l] + acc[3][l])) + ((acc[4][l] + acc[5][l]) + (acc[6][l] + acc[7][l])))
+    for p in 0..m - full {
+        term(full + p, p);
+    }
+    acc.map(|a| std::array::from_fn(|l| ((a[0][l] + a[1][l]) + (a[2][l] + a[3][l])) + ((a[4][l] + a[5][l]) + (a[6][l] + a[7][l]))))
+}
+
+#[inline(always)]
+fn dot8_lanes<const FMA: bool>(w: &[f64], x: &[f64]) -> [f64; L] {
+    dot8_lanes_n::<FMA, 1>([w], x)[0]
 }
 
 /// `delan::v_pass` over the lanes: V forward on the value, one reverse pass; V and its raw gradient
@@ -270,12 +280,18 @@ fn v_lanes<const FMA: bool, const WIDE: bool>(m: &Model, s: &mut LaneBufs) {
     dy[..L].fill(1.0);
     for l in (1..layers.len()).rev() {
         let (d, h) = (&layers[l], &s.v[l - 1]);
-        for j in 0..d.inp {
-            let t = dot8_lanes::<FMA>(&d.wt[j * d.out..(j + 1) * d.out], &dy);
-            for e in 0..L {
-                let hj = h[j * L + e];
-                dx[j * L + e] = t[e] * (1.0 - hj * hj);
+        let col = |j: usize| &d.wt[j * d.out..(j + 1) * d.out];
+        let mut j = 0;
+        while j < d.inp {
+            // two columns per pass over dy: one load of dy[i] for two FMAs
+            let (t, nj) = if j + 1 < d.inp { (dot8_lanes_n::<FMA, 2>([col(j), col(j + 1)], &dy), 2) } else { ([dot8_lanes::<FMA>(col(j), &dy); 2], 1) };
+            for q in 0..nj {
+                for e in 0..L {
+                    let hj = h[(j + q) * L + e];
+                    dx[(j + q) * L + e] = t[q][e] * (1.0 - hj * hj);
+                }
             }
+            j += nj;
         }
         std::mem::swap(&mut dy, &mut dx);
     }
