@@ -232,31 +232,43 @@ fn net_lanes<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f6
 }
 
 /// `mlp::dot8` lane by lane for J weight vectors at once (sharing the loads of x [i][lane]): Σ_i w[i] x[i]
-/// with 8 partial sums (term i into sum i mod 8) and the same tree.
+/// with 8 partial sums (term i into sum i mod 8) and the same tree. (No closures in this file's hot code:
+/// a closure does not inherit the caller's target features and was compiled as a call to SSE2 code.)
 #[inline(always)]
 fn dot8_lanes_n<const FMA: bool, const J: usize>(w: [&[f64]; J], x: &[f64]) -> [[f64; L]; J] {
     let m = w[0].len();
     let mut acc = [[[0.0f64; L]; 8]; J];
-    let full = m / 8 * 8;
     let x = &x[..m * L];
-    let mut term = |i: usize, p: usize| {
-        let xi: &[f64; L] = x[i * L..(i + 1) * L].try_into().unwrap();
+    // whole chunks of 8 with the partial index a constant once unrolled (accumulators in registers)
+    let full = m / 8 * 8;
+    for c in (0..full).step_by(8) {
+        for p in 0..8 {
+            let xi: &[f64; L] = x[(c + p) * L..(c + p + 1) * L].try_into().unwrap();
+            for q in 0..J {
+                let wi = w[q][c + p];
+                for l in 0..L {
+                    acc[q][p][l] = madd::<FMA>(wi, xi[l], acc[q][p][l]);
+                }
+            }
+        }
+    }
+    for p in 0..m - full {
+        let xi: &[f64; L] = x[(full + p) * L..(full + p + 1) * L].try_into().unwrap();
         for q in 0..J {
-            let wi = w[q][i];
+            let wi = w[q][full + p];
             for l in 0..L {
                 acc[q][p][l] = madd::<FMA>(wi, xi[l], acc[q][p][l]);
             }
         }
-    };
-    for c in (0..full).step_by(8) {
-        for p in 0..8 {
-            term(c + p, p);
+    }
+    let mut s = [[0.0f64; L]; J];
+    for q in 0..J {
+        let a = &acc[q];
+        for l in 0..L {
+            s[q][l] = ((a[0][l] + a[1][l]) + (a[2][l] + a[3][l])) + ((a[4][l] + a[5][l]) + (a[6][l] + a[7][l]));
         }
     }
-    for p in 0..m - full {
-        term(full + p, p);
-    }
-    acc.map(|a| std::array::from_fn(|l| ((a[0][l] + a[1][l]) + (a[2][l] + a[3][l])) + ((a[4][l] + a[5][l]) + (a[6][l] + a[7][l]))))
+    s
 }
 
 #[inline(always)]
@@ -280,11 +292,11 @@ fn v_lanes<const FMA: bool, const WIDE: bool>(m: &Model, s: &mut LaneBufs) {
     dy[..L].fill(1.0);
     for l in (1..layers.len()).rev() {
         let (d, h) = (&layers[l], &s.v[l - 1]);
-        let col = |j: usize| &d.wt[j * d.out..(j + 1) * d.out];
         let mut j = 0;
         while j < d.inp {
             // two columns per pass over dy: one load of dy[i] for two FMAs
-            let (t, nj) = if j + 1 < d.inp { (dot8_lanes_n::<FMA, 2>([col(j), col(j + 1)], &dy), 2) } else { ([dot8_lanes::<FMA>(col(j), &dy); 2], 1) };
+            let (cj, ck) = (&d.wt[j * d.out..(j + 1) * d.out], &d.wt[(j + 1).min(d.inp - 1) * d.out..][..d.out]);
+            let (t, nj) = if j + 1 < d.inp { (dot8_lanes_n::<FMA, 2>([cj, ck], &dy), 2) } else { ([dot8_lanes::<FMA>(cj, &dy); 2], 1) };
             for q in 0..nj {
                 for e in 0..L {
                     let hj = h[(j + q) * L + e];
@@ -339,7 +351,11 @@ fn context_lanes<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Worksp
         let Some(net) = net else { continue };
         match &net.z_part {
             Some(d) => dense_lanes::<FMA, WIDE>(d, 1, &s.zin, &mut s.zb[t]),
-            None => net.layers[0].b.iter().enumerate().for_each(|(i, bi)| s.zb[t][i * L..(i + 1) * L].fill(*bi)),
+            None => {
+                for (i, bi) in net.layers[0].b.iter().enumerate() {
+                    s.zb[t][i * L..(i + 1) * L].fill(*bi);
+                }
+            }
         }
     }
     for (l, &w) in idx.iter().enumerate() {
