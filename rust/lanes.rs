@@ -225,7 +225,7 @@ fn first_lanes<const FMA: bool>(l0: &Dense, zb: &[f64], phi: &[f64], dphi: &[f64
 fn net_lanes<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f64], dphi: &[f64], cols: &[(usize, usize)], nt: usize, a: &mut Vec<f64>, b: &mut Vec<f64>) {
     first_lanes::<FMA>(&net.layers[0], zb, phi, dphi, cols, nt, a);
     for l in 1..net.layers.len() {
-        tanh_tangent::<FMA>(a, net.layers[l - 1].out * L, nt);
+        tanh_tangent::<FMA, WIDE>(a, net.layers[l - 1].out * L, nt);
         dense_lanes::<FMA, WIDE>(&net.layers[l], nt, a, b);
         std::mem::swap(a, b);
     }
@@ -284,7 +284,7 @@ fn v_lanes<const FMA: bool, const WIDE: bool>(m: &Model, s: &mut LaneBufs) {
     first_lanes::<FMA>(&layers[0], &s.zb[1], &s.phi, &s.dphi, &m.phi_cols, 1, &mut s.v[0]);
     for l in 1..layers.len() {
         let (prev, next) = s.v.split_at_mut(l);
-        tanh_tangent::<FMA>(&mut prev[l - 1], layers[l - 1].out * L, 1);
+        tanh_tangent::<FMA, WIDE>(&mut prev[l - 1], layers[l - 1].out * L, 1);
         dense_lanes::<FMA, WIDE>(&layers[l], 1, &prev[l - 1], &mut next[0]);
     }
     s.a[..L].copy_from_slice(&s.v[layers.len() - 1][..L]);

@@ -8,7 +8,7 @@
 //! outputs — independent accumulators, which vectorise without reassociating any sum; the order of
 //! every floating-point operation is fixed, so results are bit-identical run to run.
 
-use crate::math::{madd, tanh_slice};
+use crate::math::{madd, tanh_slice_wide};
 
 /// `y = W x + b` with W (out × inp).
 #[derive(Debug, Clone)]
@@ -351,9 +351,9 @@ pub(crate) fn dense_ordered<const FMA: bool, const WIDE: bool>(d: &Dense, nt: us
 
 /// tanh on block 0 and the chain rule on the tangents: dh = (1 − h²) da.
 #[inline(always)]
-pub(crate) fn tanh_tangent<const FMA: bool>(a: &mut [f64], width: usize, nt: usize) {
+pub(crate) fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [f64], width: usize, nt: usize) {
     let (h, rest) = a[..nt * width].split_at_mut(width);
-    tanh_slice::<FMA>(h);
+    tanh_slice_wide::<FMA, WIDE>(h);
     for k in 0..nt - 1 {
         let dk = &mut rest[k * width..(k + 1) * width];
         for (di, hi) in dk.iter_mut().zip(h.iter()) {
@@ -369,7 +369,7 @@ pub(crate) fn mlp_rest<const FMA: bool, const WIDE: bool>(mlp: &Mlp, nt: usize, 
     for l in 1..mlp.layers.len() {
         let (prev, next) = bufs.split_at_mut(l);
         let a = &mut prev[l - 1];
-        tanh_tangent::<FMA>(a, mlp.layers[l - 1].out, nt);
+        tanh_tangent::<FMA, WIDE>(a, mlp.layers[l - 1].out, nt);
         dense_ordered::<FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0], rev);
     }
 }
