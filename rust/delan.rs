@@ -10,7 +10,7 @@
 use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
 use crate::lanes::LaneBufs;
-use crate::mlp::{back_tanh, dot8, mlp_rest, Dense, Mlp};
+use crate::mlp::{back_tanh, dot8_wide, mlp_rest, Dense, Mlp};
 use crate::model::Model;
 use crate::simd::simd_dispatch;
 
@@ -289,8 +289,8 @@ fn v_pass<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, rev:
     let vo = ws.bufs_v.last_mut().unwrap();
     for (k, &(ca, cb)) in m.phi_cols.iter().enumerate() {
         let (va, vb) = (ws.dphi[2 * k], ws.dphi[2 * k + 1]);
-        let ga = dot8::<FMA>(l0.col(ca), &dy);
-        vo[1 + k] = if cb == usize::MAX { ga * va } else { madd::<FMA>(dot8::<FMA>(l0.col(cb), &dy), vb, ga * va) };
+        let ga = dot8_wide::<FMA, WIDE>(l0.col(ca), &dy);
+        vo[1 + k] = if cb == usize::MAX { ga * va } else { madd::<FMA>(dot8_wide::<FMA, WIDE>(l0.col(cb), &dy), vb, ga * va) };
     }
     ws.dv = [dy, dx];
 }

@@ -129,27 +129,45 @@ fn block<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64]
 /// partial sums (lane l takes inputs j ≡ l mod 8), reduced in a fixed tree — short dependency
 /// chains instead of one 64-long chain. The order is fixed by the source, not by the vector width.
 #[inline(always)]
-fn narrow<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+fn narrow<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
     let (inp, out) = (d.inp, d.out);
     for i in i0..out {
         let wr = &d.rows[i * inp..(i + 1) * inp];
         for k in 0..NT {
-            let xk = &x[k * inp..(k + 1) * inp];
-            let mut acc = [0.0f64; 8];
-            let mut wc = wr.chunks_exact(8);
-            let mut xc = xk.chunks_exact(8);
-            for (w8, x8) in (&mut wc).zip(&mut xc) {
-                for l in 0..8 {
-                    acc[l] = madd::<FMA>(w8[l], x8[l], acc[l]);
-                }
-            }
-            for (l, (w, xv)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
-                acc[l] = madd::<FMA>(*w, *xv, acc[l]);
-            }
-            let s = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+            let s = dot8_wide::<FMA, WIDE>(wr, &x[k * inp..(k + 1) * inp]);
             y[k * out + i] = if k == 0 { d.b[i] + s } else { s };
         }
     }
+}
+
+/// `dot8`, in one zmm register with AVX-512 (LLVM left the 8 partial sums scalar): the same sums.
+#[inline(always)]
+pub(crate) fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if WIDE && w.len() % 8 == 0 {
+        // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+        return unsafe { dot8_512(w, x) };
+    }
+    dot8::<FMA>(w, x)
+}
+
+/// `dot8` for a multiple of 8 terms: partial sum l in lane l, then the tree by lane permutations
+/// (adjacent lanes, then pairs within each half, then the halves), `dot8`'s order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn dot8_512(w: &[f64], x: &[f64]) -> f64 {
+    use std::arch::x86_64::*;
+    let n = w.len();
+    assert!(n % 8 == 0 && x.len() >= n);
+    let mut acc = _mm512_setzero_pd();
+    for c in (0..n).step_by(8) {
+        // SAFETY: c + 8 <= n <= both lengths (asserted).
+        acc = unsafe { _mm512_fmadd_pd(_mm512_loadu_pd(w.as_ptr().add(c)), _mm512_loadu_pd(x.as_ptr().add(c)), acc) };
+    }
+    let s1 = _mm512_add_pd(acc, _mm512_permute_pd::<0x55>(acc));
+    let s2 = _mm512_add_pd(s1, _mm512_permutex_pd::<0x4E>(s1));
+    _mm256_cvtsd_f64(_mm512_castpd512_pd256(s2)) + _mm256_cvtsd_f64(_mm512_extractf64x4_pd::<1>(s2))
 }
 
 /// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and `narrow`'s tree:
@@ -252,7 +270,7 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
         i0 += 4;
     }
     if i0 < out {
-        narrow::<NT, FMA>(d, x, y, i0);
+        narrow::<NT, FMA, WIDE>(d, x, y, i0);
     }
 }
 
