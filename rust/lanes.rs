@@ -33,7 +33,7 @@ pub(crate) struct LaneBufs {
 
 /// Whether `eval_lanes` handles this model (value + up to 3 tangents: n ≤ 3).
 pub(crate) fn supported(m: &Model) -> bool {
-    m.n + 1 <= 4
+    m.n < 4
 }
 
 fn nets(m: &Model) -> [Option<&Mlp>; 3] {

@@ -144,7 +144,7 @@ fn narrow<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: &[f6
 #[inline(always)]
 pub(crate) fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
-    if WIDE && w.len() % 8 == 0 {
+    if WIDE && w.len().is_multiple_of(8) {
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
         return unsafe { dot8_512(w, x) };
     }
@@ -159,7 +159,7 @@ pub(crate) fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64])
 unsafe fn dot8_512(w: &[f64], x: &[f64]) -> f64 {
     use std::arch::x86_64::*;
     let n = w.len();
-    assert!(n % 8 == 0 && x.len() >= n);
+    assert!(n.is_multiple_of(8) && x.len() >= n);
     let mut acc = _mm512_setzero_pd();
     for c in (0..n).step_by(8) {
         // SAFETY: c + 8 <= n <= both lengths (asserted).
@@ -196,7 +196,7 @@ pub(crate) fn back_tanh<const FMA: bool, const WIDE: bool>(d: &Dense, dy: &[f64]
     #[allow(unused_mut)]
     let mut j0 = 0;
     #[cfg(target_arch = "x86_64")]
-    if WIDE && out % 8 == 0 {
+    if WIDE && out.is_multiple_of(8) {
         while j0 + 8 <= inp {
             // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
             unsafe { back8(d, dy, h, dx, j0) };
@@ -216,7 +216,7 @@ pub(crate) fn back_tanh<const FMA: bool, const WIDE: bool>(d: &Dense, dy: &[f64]
 unsafe fn back8(d: &Dense, dy: &[f64], h: &[f64], dx: &mut [f64], j0: usize) {
     use std::arch::x86_64::*;
     let out = d.out;
-    assert!(out % 8 == 0 && d.wt.len() >= (j0 + 8) * out && dy.len() >= out && h.len() >= j0 + 8 && dx.len() >= j0 + 8);
+    assert!(out.is_multiple_of(8) && d.wt.len() >= (j0 + 8) * out && dy.len() >= out && h.len() >= j0 + 8 && dx.len() >= j0 + 8);
     let (wt, yp) = (d.wt.as_ptr(), dy.as_ptr());
     let mut a = [_mm512_setzero_pd(); 8];
     for c in (0..out).step_by(8) {
