@@ -193,18 +193,21 @@ fn first_lanes<const FMA: bool>(l0: &Dense, zb: &[f64], phi: &[f64], dphi: &[f64
     for i in 0..h {
         let mut acc: [f64; L] = zb[i * L..(i + 1) * L].try_into().unwrap();
         for c in 0..nphi {
-            let w = l0.wt[c * h + i];
+            // fixed-size views: no bounds check per lane, so the lane loops vectorise
+            let (w, pc): (f64, &[f64; L]) = (l0.wt[c * h + i], phi[c * L..(c + 1) * L].try_into().unwrap());
             for l in 0..L {
-                acc[l] = madd::<FMA>(w, phi[c * L + l], acc[l]);
+                acc[l] = madd::<FMA>(w, pc[l], acc[l]);
             }
         }
         a[i * L..(i + 1) * L].copy_from_slice(&acc);
     }
     for k in 0..nt - 1 {
         let (ca, cb) = cols[k];
-        let (va, vb) = (&dphi[2 * k * L..(2 * k + 1) * L], &dphi[(2 * k + 1) * L..(2 * k + 2) * L]);
+        let va: &[f64; L] = dphi[2 * k * L..(2 * k + 1) * L].try_into().unwrap();
+        let vb: &[f64; L] = dphi[(2 * k + 1) * L..(2 * k + 2) * L].try_into().unwrap();
         for i in 0..h {
-            let (wa, d) = (l0.wt[ca * h + i], &mut a[((k + 1) * h + i) * L..((k + 1) * h + i + 1) * L]);
+            let wa = l0.wt[ca * h + i];
+            let d: &mut [f64; L] = (&mut a[((k + 1) * h + i) * L..((k + 1) * h + i + 1) * L]).try_into().unwrap();
             if cb == usize::MAX {
                 for l in 0..L {
                     d[l] = wa * va[l];
@@ -292,15 +295,29 @@ fn v_lanes<const FMA: bool, const WIDE: bool>(m: &Model, s: &mut LaneBufs) {
     dy[..L].fill(1.0);
     for l in (1..layers.len()).rev() {
         let (d, h) = (&layers[l], &s.v[l - 1]);
+        if d.out == 1 {
+            // `mlp::back_tanh`'s scalar-output case, lane by lane
+            let dy0: [f64; L] = dy[..L].try_into().unwrap();
+            for j in 0..d.inp {
+                let hj: &[f64; L] = h[j * L..(j + 1) * L].try_into().unwrap();
+                let dxj: &mut [f64; L] = (&mut dx[j * L..(j + 1) * L]).try_into().unwrap();
+                for e in 0..L {
+                    dxj[e] = (madd::<FMA>(d.wt[j], dy0[e], 0.0) + 0.0) * (1.0 - hj[e] * hj[e]);
+                }
+            }
+            std::mem::swap(&mut dy, &mut dx);
+            continue;
+        }
         let mut j = 0;
         while j < d.inp {
             // two columns per pass over dy: one load of dy[i] for two FMAs
             let (cj, ck) = (&d.wt[j * d.out..(j + 1) * d.out], &d.wt[(j + 1).min(d.inp - 1) * d.out..][..d.out]);
             let (t, nj) = if j + 1 < d.inp { (dot8_lanes_n::<FMA, 2>([cj, ck], &dy), 2) } else { ([dot8_lanes::<FMA>(cj, &dy); 2], 1) };
             for q in 0..nj {
+                let hj: &[f64; L] = h[(j + q) * L..(j + q + 1) * L].try_into().unwrap();
+                let dxj: &mut [f64; L] = (&mut dx[(j + q) * L..(j + q + 1) * L]).try_into().unwrap();
                 for e in 0..L {
-                    let hj = h[(j + q) * L + e];
-                    dx[(j + q) * L + e] = t[q][e] * (1.0 - hj * hj);
+                    dxj[e] = t[q][e] * (1.0 - hj[e] * hj[e]);
                 }
             }
             j += nj;

@@ -124,48 +124,62 @@ pub(crate) fn sigmoid<const FMA: bool>(x: f64) -> f64 {
     }
 }
 
-/// `tanh::<true>` of 8 values in one zmm register, written with intrinsics (LLVM compiled the loop
-/// over a slice, and 8-wide array loops, to scalar code: one value per iteration). The same operations
-/// in the same order (fnmadd(a, b, c) = fma(−a, b, c) exactly), so the same bits as the scalar tanh.
-/// SAFETY (caller): avx512f is available.
+/// `tanh::<true>` of 8·V values in V zmm registers, written with intrinsics (LLVM compiled the loop
+/// over a slice to scalar code: one value per iteration); V independent chains hide the latency of
+/// the ~40 dependent operations. The same operations in the same order (fnmadd(a, b, c) = fma(−a, b, c)
+/// exactly), so the same bits as the scalar tanh.
+/// SAFETY (caller): avx512f is available and `v` holds at least 8·V values.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-unsafe fn tanh8(v: &mut [f64; 8]) {
+unsafe fn tanh8<const V: usize>(v: &mut [f64]) {
     use std::arch::x86_64::*;
     const C: [f64; 13] = EXPM1_C;
-    // SAFETY: v holds 8 values.
-    let x = unsafe { _mm512_loadu_pd(v.as_ptr()) };
+    assert!(v.len() >= 8 * V);
     let set = _mm512_set1_pd;
-    let ax = _mm512_abs_pd(x);
-    let a = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(ax, set(20.0)), ax, set(20.0));
-    let y = _mm512_mul_pd(set(2.0), a);
-    // expm1_clamped
-    let kf = _mm512_fmadd_pd(y, set(INV_LN2), set(SHIFTER));
-    let k = _mm512_sub_pd(kf, set(SHIFTER));
-    let r = _mm512_fnmadd_pd(k, set(LN2_LO), _mm512_fnmadd_pd(k, set(LN2_HI), y));
-    let mut p = set(C[12]);
+    let (mut x, mut t) = ([_mm512_setzero_pd(); V], [_mm512_setzero_pd(); V]);
+    for u in 0..V {
+        // SAFETY: 8·V values (asserted).
+        x[u] = unsafe { _mm512_loadu_pd(v.as_ptr().add(8 * u)) };
+    }
+    let (mut kf, mut r, mut p) = ([_mm512_setzero_pd(); V], [_mm512_setzero_pd(); V], [_mm512_setzero_pd(); V]);
+    for u in 0..V {
+        let ax = _mm512_abs_pd(x[u]);
+        let a = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(ax, set(20.0)), ax, set(20.0));
+        let y = _mm512_mul_pd(set(2.0), a);
+        // expm1_clamped
+        kf[u] = _mm512_fmadd_pd(y, set(INV_LN2), set(SHIFTER));
+        let k = _mm512_sub_pd(kf[u], set(SHIFTER));
+        r[u] = _mm512_fnmadd_pd(k, set(LN2_LO), _mm512_fnmadd_pd(k, set(LN2_HI), y));
+        p[u] = set(C[12]);
+    }
     for i in (0..12).rev() {
-        p = _mm512_fmadd_pd(p, r, set(C[i]));
+        for u in 0..V {
+            p[u] = _mm512_fmadd_pd(p[u], r[u], set(C[i]));
+        }
     }
-    let p = _mm512_mul_pd(p, r);
-    let k_bits = _mm512_sub_epi64(_mm512_castpd_si512(kf), _mm512_set1_epi64(SHIFTER.to_bits() as i64));
-    let two_k = _mm512_castsi512_pd(_mm512_slli_epi64::<52>(_mm512_add_epi64(k_bits, _mm512_set1_epi64(1023))));
-    let em = _mm512_fmadd_pd(two_k, p, _mm512_sub_pd(two_k, set(1.0)));
-    // tanh_of_em: Newton–Raphson reciprocal of em + 2
-    let d = _mm512_add_pd(em, set(2.0));
-    let mut q = _mm512_castsi512_pd(_mm512_sub_epi64(_mm512_set1_epi64(RECIP_MAGIC as i64), _mm512_castpd_si512(d)));
-    for _ in 0..2 {
+    for u in 0..V {
+        let pr = _mm512_mul_pd(p[u], r[u]);
+        let k_bits = _mm512_sub_epi64(_mm512_castpd_si512(kf[u]), _mm512_set1_epi64(SHIFTER.to_bits() as i64));
+        let two_k = _mm512_castsi512_pd(_mm512_slli_epi64::<52>(_mm512_add_epi64(k_bits, _mm512_set1_epi64(1023))));
+        let em = _mm512_fmadd_pd(two_k, pr, _mm512_sub_pd(two_k, set(1.0)));
+        // tanh_of_em: Newton–Raphson reciprocal of em + 2
+        let d = _mm512_add_pd(em, set(2.0));
+        let mut q = _mm512_castsi512_pd(_mm512_sub_epi64(_mm512_set1_epi64(RECIP_MAGIC as i64), _mm512_castpd_si512(d)));
+        for _ in 0..2 {
+            let e = _mm512_fnmadd_pd(d, q, set(1.0));
+            q = _mm512_fmadd_pd(q, _mm512_fmadd_pd(e, e, e), q);
+        }
         let e = _mm512_fnmadd_pd(d, q, set(1.0));
-        q = _mm512_fmadd_pd(q, _mm512_fmadd_pd(e, e, e), q);
+        let tu = _mm512_mul_pd(em, _mm512_fmadd_pd(q, e, q));
+        t[u] = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(tu, set(1.0)), tu, set(1.0));
     }
-    let e = _mm512_fnmadd_pd(d, q, set(1.0));
-    let t = _mm512_mul_pd(em, _mm512_fmadd_pd(q, e, q));
-    let t = _mm512_mask_blend_pd(_mm512_cmp_pd_mask::<_CMP_GT_OQ>(t, set(1.0)), t, set(1.0));
-    // copysign(t, x)
     let sign = _mm512_set1_epi64(i64::MIN);
-    let bits = _mm512_or_si512(_mm512_andnot_si512(sign, _mm512_castpd_si512(t)), _mm512_and_si512(sign, _mm512_castpd_si512(x)));
-    unsafe { _mm512_storeu_pd(v.as_mut_ptr(), _mm512_castsi512_pd(bits)) };
+    for u in 0..V {
+        // copysign(t, x)
+        let bits = _mm512_or_si512(_mm512_andnot_si512(sign, _mm512_castpd_si512(t[u])), _mm512_and_si512(sign, _mm512_castpd_si512(x[u])));
+        unsafe { _mm512_storeu_pd(v.as_mut_ptr().add(8 * u), _mm512_castsi512_pd(bits)) };
+    }
 }
 
 /// The end of `tanh`: em = expm1(2|x|) → tanh(x).
@@ -191,12 +205,17 @@ pub(crate) fn tanh_slice<const FMA: bool>(xs: &mut [f64]) {
 pub(crate) fn tanh_slice_wide<const FMA: bool, const WIDE: bool>(xs: &mut [f64]) {
     #[cfg(target_arch = "x86_64")]
     if WIDE {
-        let mut chunks = xs.chunks_exact_mut(8);
-        for c in &mut chunks {
-            // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
-            unsafe { tanh8(c.try_into().unwrap()) };
+        let mut i = 0;
+        // SAFETY (both): WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+        while i + 32 <= xs.len() {
+            unsafe { tanh8::<4>(&mut xs[i..i + 32]) };
+            i += 32;
         }
-        return tanh_slice::<FMA>(chunks.into_remainder());
+        while i + 8 <= xs.len() {
+            unsafe { tanh8::<1>(&mut xs[i..i + 8]) };
+            i += 8;
+        }
+        return tanh_slice::<FMA>(&mut xs[i..]);
     }
     tanh_slice::<FMA>(xs)
 }
