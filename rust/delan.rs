@@ -10,7 +10,7 @@
 use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
 use crate::lanes::LaneBufs;
-use crate::mlp::{back_tanh, dot8_wide, mlp_rest, Dense, Mlp};
+use crate::mlp::{mlp_rest, Dense, Mlp};
 use crate::model::Model;
 use crate::simd::simd_dispatch;
 
@@ -74,8 +74,6 @@ pub struct Workspace {
     pub(crate) rhs: Vec<f64>,
     pub(crate) qdd: Vec<f64>,
     pub(crate) tau_e_del: Vec<f64>,
-    /// ∂V/∂(pre-activations) of the reverse pass, two layers' worth (`v_pass`).
-    pub(crate) dv: [Vec<f64>; 2],
     /// Outcome of the last batched task run in this workspace.
     pub(crate) status: Option<Error>,
     /// Scratch of a batched group led by this workspace (`lanes.rs`).
@@ -115,7 +113,6 @@ impl Workspace {
             rhs: vec![0.0; n],
             qdd: vec![0.0; n],
             tau_e_del: vec![0.0; n],
-            dv: [0, 1].map(|_| vec![0.0; m.net_v.layers.iter().map(|l| l.out.max(l.inp)).max().unwrap_or(1)]),
             status: None,
             lanes: LaneBufs::new(m),
         };
@@ -261,7 +258,7 @@ fn eval_head<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace) {
         }
     }
     first_layer::<FMA>(&m.net_l.layers[0], &ws.zb_l, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_l[0]);
-    first_layer::<FMA>(&m.net_v.layers[0], &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, 1, &mut ws.bufs_v[0]);
+    first_layer::<FMA>(&m.net_v.layers[0], &ws.zb_v, &ws.phi, &ws.dphi, &m.phi_cols, nt, &mut ws.bufs_v[0]);
     if let Some(lim) = &m.net_lim {
         run_net::<FMA, WIDE>(lim, &ws.zb_lim, &ws.phi, &ws.dphi, &m.phi_cols, 1, &mut ws.bufs_lim);
         let out = ws.bufs_lim.last().unwrap();
@@ -269,30 +266,6 @@ fn eval_head<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace) {
             ws.b[i] = m.meta.lim_scale * out[i];
         }
     }
-}
-
-/// V and its raw gradient (before v_scale) into `bufs_v.last()` ([0] V, [1 + k] ∂V/∂q_k), layer 0's
-/// pre-activations (value only) being in `bufs_v[0]`: V's layers forward on the value alone, then one
-/// reverse pass, ∂V/∂a_l = (W_{l+1}ᵀ ∂V/∂a_{l+1}) ⊙ (1 − h_l²), down to layer 0, whose pre-activations
-/// depend on q through φ only: 2/3 of the hidden-layer products of two forward tangents.
-#[inline(always)]
-fn v_pass<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, rev: bool) {
-    mlp_rest::<FMA, WIDE>(&m.net_v, 1, &mut ws.bufs_v, rev);
-    let layers = &m.net_v.layers;
-    let [mut dy, mut dx] = std::mem::take(&mut ws.dv);
-    dy[0] = 1.0;
-    for l in (1..layers.len()).rev() {
-        back_tanh::<FMA, WIDE>(&layers[l], &dy, &ws.bufs_v[l - 1], &mut dx);
-        std::mem::swap(&mut dy, &mut dx);
-    }
-    let l0 = &layers[0];
-    let vo = ws.bufs_v.last_mut().unwrap();
-    for (k, &(ca, cb)) in m.phi_cols.iter().enumerate() {
-        let (va, vb) = (ws.dphi[2 * k], ws.dphi[2 * k + 1]);
-        let ga = dot8_wide::<FMA, WIDE>(l0.col(ca), &dy);
-        vo[1 + k] = if cb == usize::MAX { ga * va } else { madd::<FMA>(dot8_wide::<FMA, WIDE>(l0.col(cb), &dy), vb, ga * va) };
-    }
-    ws.dv = [dy, dx];
 }
 
 /// H, (c), g, B, V at the physical coordinates `ws.qp`.
@@ -305,9 +278,9 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
     ws.flip = !ws.flip;
     if ws.flip {
         mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l, false);
-        v_pass::<FMA, WIDE>(m, ws, false);
+        mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v, false);
     } else {
-        v_pass::<FMA, WIDE>(m, ws, true);
+        mlp_rest::<FMA, WIDE>(&m.net_v, nt, &mut ws.bufs_v, true);
         mlp_rest::<FMA, WIDE>(&m.net_l, nt, &mut ws.bufs_l, true);
     }
     eval_tail(m, ws, qd, want_c);

@@ -1,7 +1,7 @@
 //! Batched passes with SIMD lanes across samples: up to [`LANES`] workspaces evaluated together, every
 //! activation stored [block][unit][lane] (block 0 the value, block k+1 its q_k-tangent). Each hidden
 //! layer is then a register-blocked small GEMM in which every weight is broadcast once for all lanes,
-//! and tanh, φ's first layers, the output layers and V's reverse pass run vectorised over the lanes too.
+//! and tanh, φ's first layers and the output layers run vectorised over the lanes too.
 //!
 //! Each lane performs exactly the operations of `delan::eval` on its own sample, in the same order
 //! (every block output's sum over the inputs in order as `mlp::block`, the last `out % 4` outputs'
@@ -26,9 +26,6 @@ pub(crate) struct LaneBufs {
     zb: [Vec<f64>; 3],
     phi: Vec<f64>,
     dphi: Vec<f64>,
-    /// V's activations per layer (value only) and its reverse pass's two buffers.
-    v: Vec<Vec<f64>>,
-    dv: [Vec<f64>; 2],
 }
 
 /// Whether `eval_lanes` handles this model (value + up to 3 tangents: n ≤ 3).
@@ -54,8 +51,6 @@ impl LaneBufs {
             zb: nets(m).map(|n| vec![0.0; n.map_or(0, |n| n.layers[0].out) * L]),
             phi: vec![0.0; m.dphi * L],
             dphi: vec![0.0; 2 * m.n * L],
-            v: m.net_v.layers.iter().map(|l| vec![0.0; l.out * L]).collect(),
-            dv: [0, 1].map(|_| vec![0.0; widest.max(m.net_v.layers[0].out) * L]),
         }
     }
 }
@@ -279,70 +274,6 @@ fn dot8_lanes<const FMA: bool>(w: &[f64], x: &[f64]) -> [f64; L] {
     dot8_lanes_n::<FMA, 1>([w], x)[0]
 }
 
-/// `delan::v_pass` over the lanes: V forward on the value, one reverse pass; V and its raw gradient
-/// are left in `s.a` ([0] V, [1 + k] ∂V/∂q_k, each LANES wide).
-#[inline(always)]
-fn v_lanes<const FMA: bool, const WIDE: bool>(m: &Model, s: &mut LaneBufs) {
-    let layers = &m.net_v.layers;
-    first_lanes::<FMA>(&layers[0], &s.zb[1], &s.phi, &s.dphi, &m.phi_cols, 1, &mut s.v[0]);
-    for l in 1..layers.len() {
-        let (prev, next) = s.v.split_at_mut(l);
-        tanh_tangent::<FMA, WIDE>(&mut prev[l - 1], layers[l - 1].out * L, 1);
-        dense_lanes::<FMA, WIDE>(&layers[l], 1, &prev[l - 1], &mut next[0]);
-    }
-    s.a[..L].copy_from_slice(&s.v[layers.len() - 1][..L]);
-    let [mut dy, mut dx] = std::mem::take(&mut s.dv);
-    dy[..L].fill(1.0);
-    for l in (1..layers.len()).rev() {
-        let (d, h) = (&layers[l], &s.v[l - 1]);
-        if d.out == 1 {
-            // `mlp::back_tanh`'s scalar-output case, lane by lane
-            let dy0: [f64; L] = dy[..L].try_into().unwrap();
-            for j in 0..d.inp {
-                let hj: &[f64; L] = h[j * L..(j + 1) * L].try_into().unwrap();
-                let dxj: &mut [f64; L] = (&mut dx[j * L..(j + 1) * L]).try_into().unwrap();
-                for e in 0..L {
-                    dxj[e] = (madd::<FMA>(d.wt[j], dy0[e], 0.0) + 0.0) * (1.0 - hj[e] * hj[e]);
-                }
-            }
-            std::mem::swap(&mut dy, &mut dx);
-            continue;
-        }
-        let mut j = 0;
-        while j < d.inp {
-            // two columns per pass over dy: one load of dy[i] for two FMAs
-            let (cj, ck) = (&d.wt[j * d.out..(j + 1) * d.out], &d.wt[(j + 1).min(d.inp - 1) * d.out..][..d.out]);
-            let (t, nj) = if j + 1 < d.inp { (dot8_lanes_n::<FMA, 2>([cj, ck], &dy), 2) } else { ([dot8_lanes::<FMA>(cj, &dy); 2], 1) };
-            for q in 0..nj {
-                let hj: &[f64; L] = h[(j + q) * L..(j + q + 1) * L].try_into().unwrap();
-                let dxj: &mut [f64; L] = (&mut dx[(j + q) * L..(j + q + 1) * L]).try_into().unwrap();
-                for e in 0..L {
-                    dxj[e] = t[q][e] * (1.0 - hj[e] * hj[e]);
-                }
-            }
-            j += nj;
-        }
-        std::mem::swap(&mut dy, &mut dx);
-    }
-    let l0 = &layers[0];
-    for (k, &(ca, cb)) in m.phi_cols.iter().enumerate() {
-        let (va, vb) = (&s.dphi[2 * k * L..(2 * k + 1) * L], &s.dphi[(2 * k + 1) * L..(2 * k + 2) * L]);
-        let ga = dot8_lanes::<FMA>(l0.col(ca), &dy);
-        let g = &mut s.a[(1 + k) * L..(2 + k) * L];
-        if cb == usize::MAX {
-            for e in 0..L {
-                g[e] = ga[e] * va[e];
-            }
-        } else {
-            let gb = dot8_lanes::<FMA>(l0.col(cb), &dy);
-            for e in 0..L {
-                g[e] = madd::<FMA>(gb[e], vb[e], ga[e] * va[e]);
-            }
-        }
-    }
-    s.dv = [dy, dx];
-}
-
 /// The first layers' z parts (b + W_z z) of lanes with per-step contexts `zs`, also written to each
 /// workspace as `set_z` would (z, its flag, zb_*); without `zs`, the workspaces' own are gathered.
 #[inline(always)]
@@ -410,11 +341,7 @@ fn eval_lanes<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace
     for (t, net) in nets(m).iter().enumerate() {
         let Some(net) = net else { continue };
         let ntn = if t == 2 { 1 } else { nt };
-        if t == 1 {
-            v_lanes::<FMA, WIDE>(m, &mut s);
-        } else {
-            net_lanes::<FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a, &mut s.b);
-        }
+        net_lanes::<FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a, &mut s.b);
         let out = net.d_out();
         for (l, &w) in idx.iter().enumerate() {
             let ws = &mut wss[w];

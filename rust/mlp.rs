@@ -170,8 +170,8 @@ unsafe fn dot8_512(w: &[f64], x: &[f64]) -> f64 {
     _mm256_cvtsd_f64(_mm512_castpd512_pd256(s2)) + _mm256_cvtsd_f64(_mm512_extractf64x4_pd::<1>(s2))
 }
 
-/// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and `narrow`'s tree:
-/// the dot products of the reverse pass (`delan::v_pass`; lane by lane in `lanes.rs`).
+/// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and a fixed tree:
+/// `narrow`'s dot products (lane by lane in `lanes.rs`).
 #[inline(always)]
 pub(crate) fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
     let mut acc = [0.0f64; 8];
@@ -186,65 +186,6 @@ pub(crate) fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
         acc[l] = madd::<FMA>(*wi, *xi, acc[l]);
     }
     ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
-}
-
-/// One step of a reverse pass: through `d` and the tanh that produced its input h,
-/// dx[j] = dot8(W[:, j], dy) · (1 − h[j]²), W[:, j] being contiguous in `wt`.
-#[inline(always)]
-pub(crate) fn back_tanh<const FMA: bool, const WIDE: bool>(d: &Dense, dy: &[f64], h: &[f64], dx: &mut [f64]) {
-    let (inp, out) = (d.inp, d.out);
-    if out == 1 {
-        // a scalar output (V's last layer): dot8 of one term is fma(w, dy, 0) + 0 (the tree adds zeros);
-        // the general loop spent ~40 instructions per input on that (a fifth of a call, measured)
-        for j in 0..inp {
-            dx[j] = (madd::<FMA>(d.wt[j], dy[0], 0.0) + 0.0) * (1.0 - h[j] * h[j]);
-        }
-        return;
-    }
-    #[allow(unused_mut)]
-    let mut j0 = 0;
-    #[cfg(target_arch = "x86_64")]
-    if WIDE && out.is_multiple_of(8) {
-        while j0 + 8 <= inp {
-            // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
-            unsafe { back8(d, dy, h, dx, j0) };
-            j0 += 8;
-        }
-    }
-    for j in j0..inp {
-        dx[j] = dot8::<FMA>(&d.wt[j * out..(j + 1) * out], dy) * (1.0 - h[j] * h[j]);
-    }
-}
-
-/// `back_tanh` for inputs j0..j0+8: eight `dot8`s side by side, their trees computed for all eight at
-/// once by lane shuffles (adjacent partials, then pairs, then halves: `dot8`'s order), so the same bits.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-unsafe fn back8(d: &Dense, dy: &[f64], h: &[f64], dx: &mut [f64], j0: usize) {
-    use std::arch::x86_64::*;
-    let out = d.out;
-    assert!(out.is_multiple_of(8) && d.wt.len() >= (j0 + 8) * out && dy.len() >= out && h.len() >= j0 + 8 && dx.len() >= j0 + 8);
-    let (wt, yp) = (d.wt.as_ptr(), dy.as_ptr());
-    let mut a = [_mm512_setzero_pd(); 8];
-    for c in (0..out).step_by(8) {
-        // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
-        let y = unsafe { _mm512_loadu_pd(yp.add(c)) };
-        for r in 0..8 {
-            a[r] = _mm512_fmadd_pd(unsafe { _mm512_loadu_pd(wt.add((j0 + r) * out + c)) }, y, a[r]);
-        }
-    }
-    let mut b = [_mm512_setzero_pd(); 4];
-    for r in 0..4 {
-        // lane pairs (p0 + p1, p2 + p3, …) of inputs 2r and 2r + 1, interleaved
-        b[r] = _mm512_add_pd(_mm512_unpacklo_pd(a[2 * r], a[2 * r + 1]), _mm512_unpackhi_pd(a[2 * r], a[2 * r + 1]));
-    }
-    let c0 = _mm512_add_pd(_mm512_shuffle_f64x2::<0x88>(b[0], b[1]), _mm512_shuffle_f64x2::<0xDD>(b[0], b[1]));
-    let c1 = _mm512_add_pd(_mm512_shuffle_f64x2::<0x88>(b[2], b[3]), _mm512_shuffle_f64x2::<0xDD>(b[2], b[3]));
-    let s = _mm512_add_pd(_mm512_shuffle_f64x2::<0x88>(c0, c1), _mm512_shuffle_f64x2::<0xDD>(c0, c1));
-    let hv = unsafe { _mm512_loadu_pd(h.as_ptr().add(j0)) };
-    let dtanh = _mm512_sub_pd(_mm512_set1_pd(1.0), _mm512_mul_pd(hv, hv));
-    unsafe { _mm512_storeu_pd(dx.as_mut_ptr().add(j0), _mm512_mul_pd(s, dtanh)) };
 }
 
 /// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
