@@ -6,8 +6,8 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use std::hint::black_box;
 
-use exolan::synth::{random_weights, SynthConfig};
-use exolan::{Inputs, Model, Workspace, ZSeq};
+use exolan::synth::{random_weights, BatchSetup, SynthConfig};
+use exolan::{Inputs, Model, ZSeq};
 
 fn model(encoder: &'static str) -> Model {
     Model::from_bytes(&random_weights(&SynthConfig { encoder, ..Default::default() })).unwrap()
@@ -75,21 +75,13 @@ fn bench_encoder(c: &mut Criterion) {
 fn bench_batched(c: &mut Criterion) {
     let m = model("tcn");
     let (bsz, t_len) = (256, 20);
-    let q0: Vec<f64> = (0..bsz * 2).map(|i| (i as f64 * 0.1).sin()).collect();
-    let tau: Vec<f64> = (0..bsz * t_len * 2).map(|i| (i as f64 * 0.07).sin() * 5.0).collect();
-    let z: Vec<f64> = (0..bsz * t_len * 16).map(|i| (i as f64 * 0.013).sin()).collect();
-    let f_v: Vec<f64> = (0..bsz * t_len).map(|i| 200.0 + (i as f64).sin()).collect();
-    let mut wss: Vec<Workspace> = (0..bsz).map(|_| m.workspace()).collect();
-    let (mut q, mut qd) = (vec![0.0; bsz * (t_len + 1) * 2], vec![0.0; bsz * (t_len + 1) * 2]);
+    let mut setup = BatchSetup::new(&m, bsz, t_len);
     let mut g = c.benchmark_group("batched_rollout");
     g.throughput(Throughput::Elements((bsz * t_len) as u64));
     for threads in [1, 2] {
         let pool = exolan::Pool::new(threads).unwrap();
         g.bench_function(BenchmarkId::new("B256 x T20 per-step z", format!("{threads} threads")), |b| {
-            b.iter(|| {
-                m.rollout_batch(&pool, &mut wss, &q0, &q0, Inputs { tau: &tau, z: ZSeq::PerStep(&z), f_v: Some(&f_v), tau_e: None }, 0.005, &mut q, &mut qd)
-                    .unwrap()
-            })
+            b.iter(|| setup.run(&m, &pool).unwrap())
         });
     }
     g.finish();

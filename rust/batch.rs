@@ -4,7 +4,8 @@
 //! thread takes it, so results are bit-identical for every thread count. Nothing here allocates:
 //! the caller passes the workspaces, and the pool hands out indices without a queue.
 
-use crate::delan::{eval_dispatch, eval_group_simd, z_bias_group_simd, ExoTorque, Workspace, GROUP};
+use crate::delan::{eval_dispatch, ExoTorque, Workspace};
+use crate::lanes::{self, eval_lanes_simd, LANES};
 use crate::encoder::EncoderState;
 use crate::error::{Error, Result};
 use crate::model::Model;
@@ -184,7 +185,7 @@ impl Model {
         }
         let t_len = self.check_batch(bsz, q0, qd0, &inp, q_out, qd_out)?;
         let per_out = (t_len + 1) * n;
-        let g = GROUP;
+        let g = LANES;
         let (wsc, qc, qdc) = (Chunks::new(wss, g), Chunks::new(q_out, g * per_out), Chunks::new(qd_out, g * per_out));
         pool.run(bsz.div_ceil(g), &|task| {
             // SAFETY: the pool hands each index to exactly one task.
@@ -194,15 +195,15 @@ impl Model {
         first_error(wss, in_element)
     }
 
-    /// Elements b0.. of a batch (one per workspace) stepped together, so that `eval_group` passes each
-    /// hidden layer's weights once for all of them; an element that fails leaves the group (its error
-    /// in its workspace) and the others go on, each computing exactly what its own rollout would.
+    /// Elements b0.. of a batch (one per workspace) stepped together, one SIMD lane each (`lanes.rs`:
+    /// every weight passes once per step for the group); an element that fails leaves the group (its
+    /// error in its workspace) and the others go on, each computing exactly what its own rollout would.
     #[allow(clippy::too_many_arguments)]
     fn rollout_group(&self, b0: usize, wss: &mut [Workspace], q0: &[f64], qd0: &[f64], inp: &Inputs, t_len: usize, dt: f64, qo: &mut [f64], qdo: &mut [f64]) {
         let (n, dz) = (self.n, self.dz);
         let per_out = (t_len + 1) * n;
-        let mut active = [false; GROUP];
-        let mut subs = [*inp; GROUP];
+        let mut active = [false; LANES];
+        let mut subs = [*inp; LANES];
         for (e, ws) in wss.iter_mut().enumerate() {
             let b = b0 + e;
             subs[e] = Inputs {
@@ -220,16 +221,10 @@ impl Model {
             active[e] = r.is_ok();
             ws.status = r.err();
         }
+        let grouped = lanes::supported(self);
+        // per-step contexts (checked by rollout_begin) are set in lanes, with the pass
+        let z_set = grouped && matches!(inp.z, ZSeq::PerStep(_));
         for k in 0..t_len {
-            // per-step contexts (checked by rollout_begin) of a full group: the z layers once for all
-            let z_set = wss.len() == GROUP && active.iter().all(|a| *a) && matches!(inp.z, ZSeq::PerStep(_));
-            if z_set {
-                let zs: [&[f64]; GROUP] = std::array::from_fn(|e| match subs[e].z {
-                    ZSeq::PerStep(z) => &z[k * dz..(k + 1) * dz],
-                    _ => &[],
-                });
-                z_bias_group_simd(self.simd, self, wss, &zs);
-            }
             for (e, ws) in wss.iter_mut().enumerate() {
                 if !active[e] {
                     continue;
@@ -239,22 +234,30 @@ impl Model {
                     (active[e], ws.status) = (false, Some(err));
                 }
             }
-            if active[..wss.len()].iter().all(|a| *a) {
-                eval_group_simd(self.simd, self, wss);
+            let (mut idx, mut zs, mut cnt) = ([0usize; LANES], [&[][..]; LANES], 0);
+            for e in (0..wss.len()).filter(|e| active[*e]) {
+                if let ZSeq::PerStep(z) = subs[e].z {
+                    zs[cnt] = &z[k * dz..(k + 1) * dz];
+                }
+                (idx[cnt], cnt) = (e, cnt + 1);
+            }
+            if cnt == 0 {
+                break;
+            }
+            if grouped {
+                eval_lanes_simd(self.simd, self, wss, &idx[..cnt], if z_set { &zs[..cnt] } else { &[] });
             } else {
-                for (_, ws) in wss.iter_mut().enumerate().filter(|(e, _)| active[*e]) {
+                for &e in &idx[..cnt] {
+                    let ws = &mut wss[e];
                     let qd = std::mem::take(&mut ws.qdp);
                     eval_dispatch(self, ws, &qd, true);
                     ws.qdp = qd;
                 }
             }
-            for (e, ws) in wss.iter_mut().enumerate() {
-                if !active[e] {
-                    continue;
-                }
+            for &e in &idx[..cnt] {
                 let out = e * per_out..(e + 1) * per_out;
-                if let Err(err) = self.step_end(ws, &subs[e], k, dt, &mut qo[out.clone()], &mut qdo[out]) {
-                    (active[e], ws.status) = (false, Some(err));
+                if let Err(err) = self.step_end(&mut wss[e], &subs[e], k, dt, &mut qo[out.clone()], &mut qdo[out]) {
+                    (active[e], wss[e].status) = (false, Some(err));
                 }
             }
         }

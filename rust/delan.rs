@@ -9,9 +9,8 @@
 
 use crate::error::{Error, Result};
 use crate::math::{madd, softplus};
-use crate::mlp::{dense, mlp_rest, tanh_tangent, Dense, Mlp};
-#[cfg(target_arch = "x86_64")]
-use crate::mlp::block512_samples;
+use crate::lanes::LaneBufs;
+use crate::mlp::{mlp_rest, Dense, Mlp};
 use crate::model::Model;
 use crate::simd::simd_dispatch;
 
@@ -77,6 +76,8 @@ pub struct Workspace {
     pub(crate) tau_e_del: Vec<f64>,
     /// Outcome of the last batched task run in this workspace.
     pub(crate) status: Option<Error>,
+    /// Scratch of a batched group led by this workspace (`lanes.rs`).
+    pub(crate) lanes: LaneBufs,
 }
 
 impl Workspace {
@@ -113,6 +114,7 @@ impl Workspace {
             qdd: vec![0.0; n],
             tau_e_del: vec![0.0; n],
             status: None,
+            lanes: LaneBufs::new(m),
         };
         let z = vec![0.0; m.dz];
         ws.compute_z(m, &z);
@@ -284,112 +286,9 @@ fn eval<const FMA: bool, const WIDE: bool>(m: &Model, ws: &mut Workspace, qd: &[
     eval_tail(m, ws, qd, want_c);
 }
 
-/// Elements evaluated together by `eval_group`.
-pub(crate) const GROUP: usize = 4;
-
-/// `eval` (want_c) of GROUP workspaces at once, each with its q̇ in `ws.qdp`: every hidden layer's
-/// weights pass once for all of them (AVX-512, 2 joints, widths ≤ 64; otherwise one by one). Each
-/// output sums the same terms in the same order as `eval`, so the results are the same bits.
-#[inline(always)]
-fn eval_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace]) {
-    let nt = m.n + 1;
-    for ws in wss.iter_mut() {
-        eval_head::<FMA, WIDE>(m, ws);
-    }
-    for net_is_l in [true, false] {
-        let net = if net_is_l { &m.net_l } else { &m.net_v };
-        for l in 1..net.layers.len() {
-            let (prev, d) = (&net.layers[l - 1], &net.layers[l]);
-            let mut grouped = false;
-            for ws in wss.iter_mut() {
-                let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
-                tanh_tangent::<FMA>(&mut bufs[l - 1], prev.out, nt);
-            }
-            #[cfg(target_arch = "x86_64")]
-            if WIDE && nt == 3 && wss.len() == GROUP && d.out % 16 == 0 {
-                let (mut xs, mut ys) = ([std::ptr::null(); GROUP], [std::ptr::null_mut(); GROUP]);
-                for (e, ws) in wss.iter_mut().enumerate() {
-                    let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
-                    assert!(bufs[l - 1].len() >= nt * d.inp && bufs[l].len() >= nt * d.out);
-                    (xs[e], ys[e]) = (bufs[l - 1].as_ptr(), bufs[l].as_mut_ptr());
-                }
-                for i0 in (0..d.out).step_by(16) {
-                    // SAFETY: lengths asserted above, inputs and outputs are distinct buffers; WIDE is only
-                    // instantiated inside `#[target_feature(enable = "avx512f")]` code.
-                    unsafe { block512_samples::<GROUP, 3, 2>(d, &xs, &ys, i0) };
-                }
-                grouped = true;
-            }
-            if !grouped {
-                for ws in wss.iter_mut() {
-                    let bufs = if net_is_l { &mut ws.bufs_l } else { &mut ws.bufs_v };
-                    let (a, b) = bufs.split_at_mut(l);
-                    dense::<FMA, WIDE>(d, nt, &a[l - 1], &mut b[0]);
-                }
-            }
-        }
-    }
-    for ws in wss.iter_mut() {
-        let qd = std::mem::take(&mut ws.qdp);
-        eval_tail(m, ws, &qd, true);
-        ws.qdp = qd;
-    }
-}
-
-/// The first-layer z contribution of net 0 (L), 1 (V) or 2 (LIM).
-fn zb_mut(ws: &mut Workspace, net: usize) -> &mut Vec<f64> {
-    match net {
-        0 => &mut ws.zb_l,
-        1 => &mut ws.zb_v,
-        _ => &mut ws.zb_lim,
-    }
-}
-
-/// `set_z` of GROUP workspaces to already checked contexts `zs`: each first layer's z columns pass once
-/// for all of them (AVX-512; otherwise one by one). The same sums as `set_z`, so the same bits.
-#[inline(always)]
-fn z_bias_group<const FMA: bool, const WIDE: bool>(m: &Model, wss: &mut [Workspace], zs: &[&[f64]]) {
-    #[cfg(target_arch = "x86_64")]
-    if WIDE && wss.len() == GROUP && zs.len() == GROUP {
-        for (ws, z) in wss.iter_mut().zip(zs) {
-            ws.z.copy_from_slice(z);
-            ws.z_ready = true;
-        }
-        for net in 0..3 {
-            let mlp = [Some(&m.net_l), Some(&m.net_v), m.net_lim.as_ref()][net];
-            let Some(mlp) = mlp else { continue };
-            match &mlp.z_part {
-                Some(d) if d.out % 8 == 0 => {
-                    let (mut xs, mut ys) = ([std::ptr::null(); GROUP], [std::ptr::null_mut(); GROUP]);
-                    for e in 0..GROUP {
-                        let zb = zb_mut(&mut wss[e], net);
-                        assert!(zs[e].len() >= d.inp && zb.len() >= d.out);
-                        (xs[e], ys[e]) = (zs[e].as_ptr(), zb.as_mut_ptr());
-                    }
-                    for i0 in (0..d.out).step_by(8) {
-                        // SAFETY: z has d.inp values (asserted), zb_* has the layer's width; avx512f (WIDE).
-                        unsafe { block512_samples::<GROUP, 1, 1>(d, &xs, &ys, i0) };
-                    }
-                }
-                _ => wss.iter_mut().zip(zs).for_each(|(ws, z)| mlp.z_bias_fast::<FMA, WIDE>(z, zb_mut(ws, net))),
-            }
-        }
-        return;
-    }
-    for (ws, z) in wss.iter_mut().zip(zs) {
-        ws.z.copy_from_slice(z);
-        z_bias_all::<FMA, WIDE>(m, ws, z);
-        ws.z_ready = true;
-    }
-}
-
-simd_dispatch!(pub(crate) fn z_bias_group_simd(m: &Model, wss: &mut [Workspace], zs: &[&[f64]]) = z_bias_group;);
-
-simd_dispatch!(pub(crate) fn eval_group_simd(m: &Model, wss: &mut [Workspace]) = eval_group;);
-
 /// From the networks' outputs: L, ∂L/∂q, H = LLᵀ, g, V and (want_c) c.
 #[inline(always)]
-fn eval_tail(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
+pub(crate) fn eval_tail(m: &Model, ws: &mut Workspace, qd: &[f64], want_c: bool) {
     let n = m.n;
     let nn = n * n;
     // L and ∂L/∂q_k (dl[k][i][j]) from the L network's outputs: n diagonal then strictly lower.

@@ -17,6 +17,7 @@ pub mod dynamics;
 pub mod encoder;
 pub mod error;
 pub mod ext;
+mod lanes;
 mod math;
 pub mod mlp;
 pub mod loader;

@@ -8,7 +8,7 @@
 //! outputs — independent accumulators, which vectorise without reassociating any sum; the order of
 //! every floating-point operation is fixed, so results are bit-identical run to run.
 
-use crate::math::{madd, tanh_slice};
+use crate::math::{madd, tanh_slice_wide};
 
 /// `y = W x + b` with W (out × inp).
 #[derive(Debug, Clone)]
@@ -129,27 +129,63 @@ fn block<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64]
 /// partial sums (lane l takes inputs j ≡ l mod 8), reduced in a fixed tree — short dependency
 /// chains instead of one 64-long chain. The order is fixed by the source, not by the vector width.
 #[inline(always)]
-fn narrow<const NT: usize, const FMA: bool>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+fn narrow<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
     let (inp, out) = (d.inp, d.out);
     for i in i0..out {
         let wr = &d.rows[i * inp..(i + 1) * inp];
         for k in 0..NT {
-            let xk = &x[k * inp..(k + 1) * inp];
-            let mut acc = [0.0f64; 8];
-            let mut wc = wr.chunks_exact(8);
-            let mut xc = xk.chunks_exact(8);
-            for (w8, x8) in (&mut wc).zip(&mut xc) {
-                for l in 0..8 {
-                    acc[l] = madd::<FMA>(w8[l], x8[l], acc[l]);
-                }
-            }
-            for (l, (w, xv)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
-                acc[l] = madd::<FMA>(*w, *xv, acc[l]);
-            }
-            let s = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]));
+            let s = dot8_wide::<FMA, WIDE>(wr, &x[k * inp..(k + 1) * inp]);
             y[k * out + i] = if k == 0 { d.b[i] + s } else { s };
         }
     }
+}
+
+/// `dot8`, in one zmm register with AVX-512 (LLVM left the 8 partial sums scalar): the same sums.
+#[inline(always)]
+pub(crate) fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if WIDE && w.len().is_multiple_of(8) {
+        // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+        return unsafe { dot8_512(w, x) };
+    }
+    dot8::<FMA>(w, x)
+}
+
+/// `dot8` for a multiple of 8 terms: partial sum l in lane l, then the tree by lane permutations
+/// (adjacent lanes, then pairs within each half, then the halves), `dot8`'s order.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn dot8_512(w: &[f64], x: &[f64]) -> f64 {
+    use std::arch::x86_64::*;
+    let n = w.len();
+    assert!(n.is_multiple_of(8) && x.len() >= n);
+    let mut acc = _mm512_setzero_pd();
+    for c in (0..n).step_by(8) {
+        // SAFETY: c + 8 <= n <= both lengths (asserted).
+        acc = unsafe { _mm512_fmadd_pd(_mm512_loadu_pd(w.as_ptr().add(c)), _mm512_loadu_pd(x.as_ptr().add(c)), acc) };
+    }
+    let s1 = _mm512_add_pd(acc, _mm512_permute_pd::<0x55>(acc));
+    let s2 = _mm512_add_pd(s1, _mm512_permutex_pd::<0x4E>(s1));
+    _mm256_cvtsd_f64(_mm512_castpd512_pd256(s2)) + _mm256_cvtsd_f64(_mm512_extractf64x4_pd::<1>(s2))
+}
+
+/// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and a fixed tree:
+/// `narrow`'s dot products (lane by lane in `lanes.rs`).
+#[inline(always)]
+pub(crate) fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 8];
+    let mut wc = w.chunks_exact(8);
+    let mut xc = x[..w.len()].chunks_exact(8);
+    for (w8, x8) in (&mut wc).zip(&mut xc) {
+        for l in 0..8 {
+            acc[l] = madd::<FMA>(w8[l], x8[l], acc[l]);
+        }
+    }
+    for (l, (wi, xi)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
+        acc[l] = madd::<FMA>(*wi, *xi, acc[l]);
+    }
+    ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
 }
 
 /// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
@@ -165,11 +201,11 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
             // rev: the same blocks last to first (independent outputs, so the same bits; see `eval`)
             let n32 = out / 32;
             for b in 0..n32 {
-                block512::<NT, 4, NT>(d, x, y, 32 * if rev { n32 - 1 - b } else { b });
+                block512::<NT, 4>(d, x, y, 32 * if rev { n32 - 1 - b } else { b });
             }
             i0 = 32 * n32;
             while i0 + 8 <= out {
-                block512::<NT, 1, NT>(d, x, y, i0);
+                block512::<NT, 1>(d, x, y, i0);
                 i0 += 8;
             }
         }
@@ -183,28 +219,25 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
         i0 += 4;
     }
     if i0 < out {
-        narrow::<NT, FMA>(d, x, y, i0);
+        narrow::<NT, FMA, WIDE>(d, x, y, i0);
     }
 }
 
-/// `block` for 8·R outputs in R zmm registers per block (the bias on blocks 0, EVERY, 2·EVERY, …: several
-/// samples' value-and-tangent blocks side by side), written with intrinsics: the compiler
+/// `block` for 8·R outputs in R zmm registers per block, written with intrinsics: the compiler
 /// does not vectorise the generic `block` at these widths (it spilled 96 accumulators to the stack).
 /// The same fused operations in the same order as `block::<NT, true, _>`, so the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+pub(crate) unsafe fn block512<const NT: usize, const R: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
     use std::arch::x86_64::*;
     let (inp, out) = (d.inp, d.out);
     assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + 8 * R <= out);
     assert!(d.wt.len() >= inp * out && d.b.len() >= out);
     let mut acc = [[_mm512_setzero_pd(); R]; NT];
-    for k in (0..NT).step_by(EVERY) {
-        for r in 0..R {
-            // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
-            acc[k][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
-        }
+    for r in 0..R {
+        // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
+        acc[0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
     }
     let (wt, xp) = (d.wt.as_ptr(), x.as_ptr());
     for j in 0..inp {
@@ -222,52 +255,6 @@ pub(crate) unsafe fn block512<const NT: usize, const R: usize, const EVERY: usiz
     for k in 0..NT {
         for r in 0..R {
             unsafe { _mm512_storeu_pd(y.as_mut_ptr().add(k * out + i0 + 8 * r), acc[k][r]) };
-        }
-    }
-}
-
-/// `block512` for G samples at once, each with its own NB blocks (value, tangents) at `xs[e]`/`ys[e]`
-/// (`inp`/`out` apart, the bias on block 0): every weight is loaded once for all G·NB columns. The same
-/// operations in the same order as `block512` on each sample alone, so the same bits.
-/// SAFETY (caller): `xs[e]` holds NB·inp readable values and `ys[e]` NB·out writable ones, i0 + 8·R <= out.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-#[inline]
-pub(crate) unsafe fn block512_samples<const G: usize, const NB: usize, const R: usize>(
-    d: &Dense,
-    xs: &[*const f64; G],
-    ys: &[*mut f64; G],
-    i0: usize,
-) {
-    use std::arch::x86_64::*;
-    let (inp, out) = (d.inp, d.out);
-    assert!(d.wt.len() >= inp * out && d.b.len() >= out && i0 + 8 * R <= out);
-    let mut acc = [[[_mm512_setzero_pd(); R]; NB]; G];
-    for e in 0..G {
-        for r in 0..R {
-            acc[e][0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
-        }
-    }
-    let wt = d.wt.as_ptr();
-    for j in 0..inp {
-        let mut w = [_mm512_setzero_pd(); R];
-        for r in 0..R {
-            w[r] = unsafe { _mm512_loadu_pd(wt.add(j * out + i0 + 8 * r)) };
-        }
-        for e in 0..G {
-            for k in 0..NB {
-                let xk = _mm512_set1_pd(unsafe { *xs[e].add(k * inp + j) });
-                for r in 0..R {
-                    acc[e][k][r] = _mm512_fmadd_pd(w[r], xk, acc[e][k][r]);
-                }
-            }
-        }
-    }
-    for e in 0..G {
-        for k in 0..NB {
-            for r in 0..R {
-                unsafe { _mm512_storeu_pd(ys[e].add(k * out + i0 + 8 * r), acc[e][k][r]) };
-            }
         }
     }
 }
@@ -331,9 +318,9 @@ pub(crate) fn dense_ordered<const FMA: bool, const WIDE: bool>(d: &Dense, nt: us
 
 /// tanh on block 0 and the chain rule on the tangents: dh = (1 − h²) da.
 #[inline(always)]
-pub(crate) fn tanh_tangent<const FMA: bool>(a: &mut [f64], width: usize, nt: usize) {
+pub(crate) fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [f64], width: usize, nt: usize) {
     let (h, rest) = a[..nt * width].split_at_mut(width);
-    tanh_slice::<FMA>(h);
+    tanh_slice_wide::<FMA, WIDE>(h);
     for k in 0..nt - 1 {
         let dk = &mut rest[k * width..(k + 1) * width];
         for (di, hi) in dk.iter_mut().zip(h.iter()) {
@@ -349,7 +336,7 @@ pub(crate) fn mlp_rest<const FMA: bool, const WIDE: bool>(mlp: &Mlp, nt: usize, 
     for l in 1..mlp.layers.len() {
         let (prev, next) = bufs.split_at_mut(l);
         let a = &mut prev[l - 1];
-        tanh_tangent::<FMA>(a, mlp.layers[l - 1].out, nt);
+        tanh_tangent::<FMA, WIDE>(a, mlp.layers[l - 1].out, nt);
         dense_ordered::<FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0], rev);
     }
 }

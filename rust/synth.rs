@@ -6,6 +6,8 @@ use std::collections::HashMap;
 
 use safetensors::tensor::{Dtype, TensorView};
 
+use crate::{Inputs, Model, Pool, Result, Workspace, ZSeq};
+
 /// What to generate.
 #[derive(Debug, Clone)]
 pub struct SynthConfig {
@@ -191,4 +193,38 @@ fn canonical(file: Vec<u8>) -> Vec<u8> {
     out.extend_from_slice(&h);
     out.extend_from_slice(&file[8 + hl..]);
     out
+}
+
+/// The batched-rollout set-up of the benchmarks and profilers: B rollouts of T steps from q0 = q̇0 with
+/// per-step z (smooth deterministic inputs), one workspace per element, the outputs.
+#[derive(Debug)]
+pub struct BatchSetup {
+    pub q0: Vec<f64>,
+    pub tau: Vec<f64>,
+    pub z: Vec<f64>,
+    pub f_v: Vec<f64>,
+    pub wss: Vec<Workspace>,
+    pub q: Vec<f64>,
+    pub qd: Vec<f64>,
+}
+
+impl BatchSetup {
+    pub fn new(m: &Model, bsz: usize, t_len: usize) -> BatchSetup {
+        let (n, dz) = (m.n, m.dz);
+        BatchSetup {
+            q0: (0..bsz * n).map(|i| (i as f64 * 0.1).sin()).collect(),
+            tau: (0..bsz * t_len * n).map(|i| (i as f64 * 0.07).sin() * 5.0).collect(),
+            z: (0..bsz * t_len * dz).map(|i| (i as f64 * 0.013).sin()).collect(),
+            f_v: (0..bsz * t_len).map(|i| 200.0 + (i as f64).sin()).collect(),
+            wss: (0..bsz).map(|_| m.workspace()).collect(),
+            q: vec![0.0; bsz * (t_len + 1) * n],
+            qd: vec![0.0; bsz * (t_len + 1) * n],
+        }
+    }
+
+    /// One `rollout_batch` (dt 0.005) on `pool`.
+    pub fn run(&mut self, m: &Model, pool: &Pool) -> Result<()> {
+        let inp = Inputs { tau: &self.tau, z: ZSeq::PerStep(&self.z), f_v: Some(&self.f_v), tau_e: None };
+        m.rollout_batch(pool, &mut self.wss, &self.q0, &self.q0, inp, 0.005, &mut self.q, &mut self.qd)
+    }
 }

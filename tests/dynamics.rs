@@ -325,6 +325,54 @@ fn batched_rollouts_are_bit_identical_across_thread_counts() {
 }
 
 #[test]
+fn batched_lanes_equal_single_rollouts_at_every_level() {
+    // the lanes of a group (full and partial) run each element's own operations: the same bits as its
+    // single rollout, for every model shape, context kind and code path
+    use exolan::Simd;
+    for cfg in configs() {
+        let mut m = model(&cfg);
+        let (n, dz, best) = (m.n, m.dz, m.simd());
+        let (bsz, t_len) = (11, 6);
+        let q0 = pseudo(11, bsz * n, 1.0);
+        let qd0 = pseudo(12, bsz * n, 1.0);
+        let tau = pseudo(13, bsz * t_len * n, 5.0);
+        let zs = pseudo(14, bsz * t_len * dz, 1.0);
+        let zc = pseudo(15, bsz * dz, 1.0);
+        let f_v = pseudo(16, bsz * t_len, 300.0).iter().map(|f| f.abs()).collect::<Vec<_>>();
+        for level in [Simd::Portable, Simd::Avx2Fma, Simd::Avx512].into_iter().filter(|l| *l <= best) {
+            m.set_simd(Some(level));
+            for per_step in [true, false] {
+                let zb = |b: usize| match (dz, per_step) {
+                    (0, _) => ZSeq::Keep,
+                    (_, true) => ZSeq::PerStep(&zs[b * t_len * dz..(b + 1) * t_len * dz]),
+                    _ => ZSeq::Const(&zc[b * dz..(b + 1) * dz]),
+                };
+                let all = match (dz, per_step) {
+                    (0, _) => ZSeq::Keep,
+                    (_, true) => ZSeq::PerStep(&zs),
+                    _ => ZSeq::Const(&zc),
+                };
+                let pool = exolan::Pool::new(2).unwrap();
+                let mut wss: Vec<Workspace> = (0..bsz).map(|_| m.workspace()).collect();
+                let (mut q, mut qd) = (vec![0.0; bsz * (t_len + 1) * n], vec![0.0; bsz * (t_len + 1) * n]);
+                let inp = Inputs { tau: &tau, z: all, f_v: Some(&f_v), tau_e: None };
+                m.rollout_batch(&pool, &mut wss, &q0, &qd0, inp, 0.005, &mut q, &mut qd).unwrap();
+                let mut ws = m.workspace();
+                for b in 0..bsz {
+                    let (mut q1, mut qd1) = (vec![0.0; (t_len + 1) * n], vec![0.0; (t_len + 1) * n]);
+                    let tb = &tau[b * t_len * n..(b + 1) * t_len * n];
+                    let inp = Inputs { tau: tb, z: zb(b), f_v: Some(&f_v[b * t_len..(b + 1) * t_len]), tau_e: None };
+                    m.rollout(&mut ws, &q0[b * n..(b + 1) * n], &qd0[b * n..(b + 1) * n], inp, 0.005, &mut q1, &mut qd1).unwrap();
+                    let off = b * (t_len + 1) * n;
+                    let same = |a: &[f64], c: &[f64]| a.iter().zip(c).all(|(x, y)| x.to_bits() == y.to_bits());
+                    assert!(same(&q1, &q[off..]) && same(&qd1, &qd[off..]), "{:?} {level:?} per_step {per_step} element {b}", cfg.joint_types);
+                }
+            }
+        }
+    }
+}
+
+#[test]
 fn ill_conditioned_inertia_is_reported() {
     // softplus_offset 0 and a very negative diagonal pre-activation: L_11 ≈ e^{-60}, cond(H) ~ 1e50.
     let d = SynthConfig::default();
