@@ -229,49 +229,35 @@ fn net_lanes<const FMA: bool, const WIDE: bool>(net: &Mlp, zb: &[f64], phi: &[f6
     }
 }
 
-/// `mlp::dot8` lane by lane for J weight vectors at once (sharing the loads of x [i][lane]): Σ_i w[i] x[i]
-/// with 8 partial sums (term i into sum i mod 8) and the same tree. (No closures in this file's hot code:
-/// a closure does not inherit the caller's target features and was compiled as a call to SSE2 code.)
+/// `mlp::dot8` lane by lane: Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8) and the same
+/// tree. (No closures in this file's hot code: a closure does not inherit the caller's target features
+/// and was compiled as a call to SSE2 code.)
 #[inline(always)]
-fn dot8_lanes_n<const FMA: bool, const J: usize>(w: [&[f64]; J], x: &[f64]) -> [[f64; L]; J] {
-    let m = w[0].len();
-    let mut acc = [[[0.0f64; L]; 8]; J];
+fn dot8_lanes<const FMA: bool>(w: &[f64], x: &[f64]) -> [f64; L] {
+    let m = w.len();
+    let mut acc = [[0.0f64; L]; 8];
     let x = &x[..m * L];
     // whole chunks of 8 with the partial index a constant once unrolled (accumulators in registers)
     let full = m / 8 * 8;
     for c in (0..full).step_by(8) {
         for p in 0..8 {
             let xi: &[f64; L] = x[(c + p) * L..(c + p + 1) * L].try_into().unwrap();
-            for q in 0..J {
-                let wi = w[q][c + p];
-                for l in 0..L {
-                    acc[q][p][l] = madd::<FMA>(wi, xi[l], acc[q][p][l]);
-                }
+            for l in 0..L {
+                acc[p][l] = madd::<FMA>(w[c + p], xi[l], acc[p][l]);
             }
         }
     }
     for p in 0..m - full {
         let xi: &[f64; L] = x[(full + p) * L..(full + p + 1) * L].try_into().unwrap();
-        for q in 0..J {
-            let wi = w[q][full + p];
-            for l in 0..L {
-                acc[q][p][l] = madd::<FMA>(wi, xi[l], acc[q][p][l]);
-            }
+        for l in 0..L {
+            acc[p][l] = madd::<FMA>(w[full + p], xi[l], acc[p][l]);
         }
     }
-    let mut s = [[0.0f64; L]; J];
-    for q in 0..J {
-        let a = &acc[q];
-        for l in 0..L {
-            s[q][l] = ((a[0][l] + a[1][l]) + (a[2][l] + a[3][l])) + ((a[4][l] + a[5][l]) + (a[6][l] + a[7][l]));
-        }
+    let (a, mut s) = (&acc, [0.0f64; L]);
+    for l in 0..L {
+        s[l] = ((a[0][l] + a[1][l]) + (a[2][l] + a[3][l])) + ((a[4][l] + a[5][l]) + (a[6][l] + a[7][l]));
     }
     s
-}
-
-#[inline(always)]
-fn dot8_lanes<const FMA: bool>(w: &[f64], x: &[f64]) -> [f64; L] {
-    dot8_lanes_n::<FMA, 1>([w], x)[0]
 }
 
 /// The first layers' z parts (b + W_z z) of lanes with per-step contexts `zs`, also written to each

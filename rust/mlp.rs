@@ -142,7 +142,7 @@ fn narrow<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: &[f6
 
 /// `dot8`, in one zmm register with AVX-512 (LLVM left the 8 partial sums scalar): the same sums.
 #[inline(always)]
-pub(crate) fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
+fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if WIDE && w.len().is_multiple_of(8) {
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
@@ -173,7 +173,7 @@ unsafe fn dot8_512(w: &[f64], x: &[f64]) -> f64 {
 /// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and a fixed tree:
 /// `narrow`'s dot products (lane by lane in `lanes.rs`).
 #[inline(always)]
-pub(crate) fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
+fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
     let mut acc = [0.0f64; 8];
     let mut wc = w.chunks_exact(8);
     let mut xc = x[..w.len()].chunks_exact(8);
