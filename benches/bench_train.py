@@ -3,6 +3,7 @@ ExoLaN+LIM with w_fd and w_ms (H = 4, 256 starts) and for MLP-TCN+LIM (torque lo
 with `--against REV`, the same measurement of the tree at git revision REV in the same run, and the ratios.
 
     python benches/bench_train.py [--against 66a29dd] [--data DIR] [--batches 6] [--repeats 3] [--threads 1,2]
+                                  [--device cpu|cuda]
 
 Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
 alternating within every repeat so that a busy machine slows both alike; a figure is the best of `--repeats`
@@ -29,7 +30,7 @@ CONFIGS = {
 }
 
 
-def worker(data: str, config: str, threads: int, batches: int, batch_size: int) -> dict:
+def worker(data: str, config: str, threads: int, batches: int, batch_size: int, device: str = "cpu") -> dict:
     """One measurement with whatever `exolan` is importable (this tree's or the old one's)."""
     import exolan  # noqa: F401  (first: a tree's own settings apply before torch loads)
     import torch
@@ -49,18 +50,21 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int) 
     model = build_model(c["method"], lim=True, joint_types=desc["joint_types"], joint_names=desc["joint_names"],
                         context_channels=desc["context_channels"], **data_scales(stats), **black_box)
     model.norm.set_stats(stats["ctx_mean"], stats["ctx_std"])
+    dev = torch.device(device)
+    model.to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-3)
     cfg = TrainConfig(method=c["method"], batch_size=batch_size, w_fd=c["w_fd"], w_ms=c["w_ms"])
-    ch = make_chunks(trials, model.receptive_field - 1, cfg.chunk_steps, cfg.horizon)
+    ch = make_chunks(trials, model.receptive_field - 1, cfg.chunk_steps, cfg.horizon).to(dev)
     per = max(1, cfg.batch_size // cfg.chunk_steps)
     K = ch.q.shape[0]
     gen = torch.Generator().manual_seed(0)
     perm = torch.randperm(K, generator=gen)
-    one = torch.ones(len(desc["joint_names"]))
+    one = torch.ones(len(desc["joint_names"]), device=dev)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     n_samples = 0
 
     def step(b):
-        idx = perm[(b * per) % K:][:per]
+        idx = perm[(b * per) % K:][:per].to(dev)
         loss = batch_losses(model, ch, idx, cfg, one, one, desc["dt"], gen)["loss"]
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -68,9 +72,11 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int) 
         return int(ch.loss[idx].sum())
 
     step(0)                                    # warm-up
+    sync()
     t0 = time.perf_counter()
     for b in range(1, batches + 1):
         n_samples += step(b)
+    sync()                                     # a GPU's queued kernels belong to the time
     dt = time.perf_counter() - t0
     return dict(samples_per_s=n_samples / dt, ms_per_batch=dt / batches * 1e3)
 
@@ -90,13 +96,14 @@ def tree_of(rev: str) -> Path:
 
 
 def measure(tree: Path, data: str, config: str, threads: int, batches: int, batch_size: int,
-            wait_policy: str | None = None) -> dict:
+            wait_policy: str | None = None, device: str = "cpu") -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree / "python"), OMP_NUM_THREADS=str(threads))
     env.pop("OMP_WAIT_POLICY", None)                   # each tree as it ships, unless asked otherwise
     if wait_policy:
         env["OMP_WAIT_POLICY"] = wait_policy
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", config, "--data", data,
-           "--threads", str(threads), "--batches", str(batches), "--batch-size", str(batch_size)]
+           "--threads", str(threads), "--batches", str(batches), "--batch-size", str(batch_size),
+           "--device", device]
     out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -110,11 +117,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", default="1,2")
     ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the GPU's figures: compare trees on one device)")
     ap.add_argument("--json", default=None, help="write the figures here")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        print(json.dumps(worker(args.data, args.worker, int(args.threads), args.batches, args.batch_size)))
+        print(json.dumps(worker(args.data, args.worker, int(args.threads), args.batches, args.batch_size,
+                                args.device)))
         return
     data = Path(args.data) if args.data else ROOT / "out" / "bench_world"
     if not args.data and not (data / "subjects.csv").exists():
@@ -137,12 +146,12 @@ def main() -> None:
                 for name, (tree, policy) in trees.items():
                     if policy and th == 1:
                         continue                       # one thread never waits for another
-                    m = measure(tree, str(data), config, th, args.batches, args.batch_size, policy)
+                    m = measure(tree, str(data), config, th, args.batches, args.batch_size, policy, args.device)
                     key = (config, th, name)
                     best[key] = max(best.get(key, 0.0), m["samples_per_s"])
                     print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:10s} "
                           f"{m['samples_per_s']:9.0f} samples/s ({m['ms_per_batch']:.0f} ms/batch)", flush=True)
-    print(f"\nbest of {args.repeats}, batch {args.batch_size}, samples/s (higher is better):")
+    print(f"\nbest of {args.repeats}, batch {args.batch_size}, {args.device}, samples/s (higher is better):")
     rows = []
     for config in configs:
         for th in threads:
@@ -160,7 +169,8 @@ def main() -> None:
             print(line)
             rows.append(row)
     if args.json:
-        Path(args.json).write_text(json.dumps(dict(against=args.against, batch=args.batch_size, rows=rows), indent=1))
+        Path(args.json).write_text(json.dumps(dict(against=args.against, batch=args.batch_size, device=args.device,
+                                                   rows=rows), indent=1))
 
 
 if __name__ == "__main__":
