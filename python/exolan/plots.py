@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import DataError, _col, _read_csv, read_subjects
+from .data import DataError, read_subjects
+from .recording import _col, _read_csv
 
 COLORS = {"l": "tab:blue", "r": "tab:red"}
 LEG = {"l": "left", "r": "right"}
