@@ -416,3 +416,12 @@ def test_rollout_amplification_separates_integrated_from_compounding_errors():
     compounding = amp(lambda dqd, t: bias + 60.0 * dqd)
     assert 1.0 < compounding[0] < compounding[1] < compounding[2]
     assert compounding[2] > 3.0
+
+
+def test_default_workers_is_one_per_core_within_free_memory(monkeypatch):
+    pages = {"SC_PAGE_SIZE": 4096, "SC_AVPHYS_PAGES": 5 * R.WORKER_BYTES // 4096}
+    monkeypatch.setattr(R.os, "sysconf", lambda name: pages[name])
+    assert R.default_workers(16) == 5          # memory for five jobs
+    assert R.default_workers(3) == 3           # fewer cores than that
+    pages["SC_AVPHYS_PAGES"] = 0
+    assert R.default_workers(16) == 1          # always at least one

@@ -1,6 +1,6 @@
 """The paper's three studies as one resumable sweep, and the report built from it.
 
-``exolan reproduce --scale small|medium|paper --out DIR [--data DIR] [--workers N] [--ray ADDRESS]``
+``exolan reproduce --scale small|converge|medium|paper --out DIR [--data DIR] [--workers N] [--ray ADDRESS]``
 
 Studies (paper section numbers aside, see ``/work/shared/PAPER_FACTS.md``):
 
@@ -19,9 +19,10 @@ Jobs run in a local process pool (``--workers``) or as Ray tasks (``--ray ADDRES
 pure function :func:`run_job`, so both give the same numbers.
 
 Scales: ``small`` (~15 min on two cores: 21 users x 28 tasks of 2 s, 3 epochs, 2 seeds; part of the main
-job), ``medium`` (6 s trials, 30 epochs, 3 seeds: a few hours on 8-16 cores or a GPU), ``paper`` (the default world, 1000 epochs,
-5 seeds). On a machine with CUDA, ``medium`` and ``paper`` train on the GPU (``EXOLAN_DEVICE=cpu|cuda``
-overrides), two runs at a time; evaluation always runs on the CPU in the worker.
+job), ``converge`` (the claims: early-stopped, 3 seeds; 81 min on 2 cores), ``medium`` (6 s trials, 30 epochs,
+3 seeds), ``paper`` (the default world, 1000 epochs, 5 seeds). On a machine with CUDA, ``medium`` and ``paper``
+train on the GPU (``EXOLAN_DEVICE=cpu|cuda`` overrides); ``--workers`` defaults to one per core as far as memory
+allows, on a GPU too; evaluation always runs on the CPU in the worker.
 
 Ray (``pip install exolan[ray]``): ``--ray ADDRESS`` submits every job as a Ray task (one CPU each, or
 ``threads`` CPUs); ``--ray local`` starts a fresh Ray instance on this machine for the sweep and stops it
@@ -143,8 +144,7 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
     if device is None:
         device = os.environ.get("EXOLAN_DEVICE") or _default_device(scale)
     if workers is None:
-        # one worker per core on CPU; on a GPU a few workers share the device
-        workers = min(cores, 4) if device == "cpu" else 2
+        workers = default_workers(cores)
     # One torch thread per job whatever the executor: float reductions depend on the thread count, and the
     # same sweep must give the same numbers serially, in a process pool and on Ray (EXOLAN_THREADS overrides;
     # more workers, not more threads, is how the sweep uses more cores).
@@ -175,6 +175,19 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
     meta["seconds"]["total"] = time.perf_counter() - t0
     log(f"[reproduce] done in {meta['seconds']['total']:.0f}s: {out / 'report.md'}")
     return summary
+
+
+WORKER_BYTES = 2 * 1024 ** 3   # a converge-scale job peaked at 1.7 GB (docs/RESULTS.md)
+
+
+def default_workers(cores: int) -> int:
+    """One worker per core, as many as the free memory holds. On a GPU too: the small models leave it
+    launch-bound, and 12 workers sharing one H100 each ran at about one core's speed (docs/TRAINING.md)."""
+    try:
+        free = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+    except (ValueError, OSError, AttributeError):   # no sysconf (Windows): trust the cores
+        return max(1, cores)
+    return max(1, min(cores, int(free // WORKER_BYTES)))
 
 
 def _default_device(scale: Scale) -> str:
