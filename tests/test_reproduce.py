@@ -419,9 +419,15 @@ def test_rollout_amplification_separates_integrated_from_compounding_errors():
 
 
 def test_default_workers_is_one_per_core_within_free_memory(monkeypatch):
-    pages = {"SC_PAGE_SIZE": 4096, "SC_AVPHYS_PAGES": 5 * R.WORKER_BYTES // 4096}
-    monkeypatch.setattr(R.os, "sysconf", lambda name: pages[name])
+    avail = {"bytes": 5 * R.WORKER_BYTES}
+    monkeypatch.setattr(R, "_available_memory", lambda: avail["bytes"])
     assert R.default_workers(16) == 5          # memory for five jobs
     assert R.default_workers(3) == 3           # fewer cores than that
-    pages["SC_AVPHYS_PAGES"] = 0
+    avail["bytes"] = 0
     assert R.default_workers(16) == 1          # always at least one
+    avail["bytes"] = None
+    assert R.default_workers(16) == 16         # unknown memory: one per core
+
+
+def test_available_memory_reads_a_positive_figure():
+    assert R._available_memory() > 0

@@ -180,14 +180,28 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
 WORKER_BYTES = 2 * 1024 ** 3   # a converge-scale job peaked at 1.7 GB (docs/RESULTS.md)
 
 
-def default_workers(cores: int) -> int:
-    """One worker per core, as many as the free memory holds. On a GPU too: the small models leave it
-    launch-bound, and 12 workers sharing one H100 each ran at about one core's speed (docs/TRAINING.md)."""
+def _available_memory() -> int | None:
+    """Bytes a new process can take: Linux's MemAvailable (free + reclaimable cache; free pages alone are near 0
+    on a machine whose cache is full), else the free pages, else None."""
     try:
-        free = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
-    except (ValueError, OSError, AttributeError):   # no sysconf (Windows): trust the cores
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+    except (ValueError, OSError, AttributeError):   # no sysconf (Windows)
+        return None
+
+
+def default_workers(cores: int) -> int:
+    """One worker per core, as many as the available memory holds. On a GPU too: the small models leave it
+    launch-bound, and 12 workers sharing one H100 each ran at about one core's speed (docs/TRAINING.md)."""
+    avail = _available_memory()
+    if avail is None:                                  # unknown: trust the cores
         return max(1, cores)
-    return max(1, min(cores, int(free // WORKER_BYTES)))
+    return max(1, min(cores, int(avail // WORKER_BYTES)))
 
 
 def _default_device(scale: Scale) -> str:
