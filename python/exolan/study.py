@@ -57,6 +57,7 @@ class Scale:
     w_fd: float = 0.01
     w_ms: float = 1.0
     ms_norm: str = "state"           # the w_fd+w_ms run's multi-step normalisation (TrainConfig.ms_norm)
+    ms_horizons: tuple[int, ...] = (4,)  # the w_fd+w_ms run's rollout horizon H (paper: 4); more = runs beside it
     # early stopping: every run trains until its validation loss (on `val_users` training users carved out,
     # never the held-out users) has not improved for `patience` epochs, at most `epochs` (0 = fixed epochs)
     patience: int = 0
@@ -76,6 +77,7 @@ SCALES: dict[str, Scale] = {
     # Test-only: seconds of work, proves the orchestration end to end (not a study).
     "tiny": Scale("tiny", users=6, tasks="walk,stand,calisthenics,push_pull,jump_in_place,turn,cut,run,squat",
                   seconds=2.0, epochs=2, seeds=(0, 1), architectures=("exolan", "mlp-tcn", "tcn"), batch_size=2048,
+                  ms_horizons=(4, 6),
                   lims=(True, False), rollout_stride=50, taskid_per_trial=60, taskid_epochs=5,
                   real=False),
     # Test-only: the real models in the fewest runs that still fill every table (one seed).
@@ -93,7 +95,8 @@ SCALES: dict[str, Scale] = {
     "converge": Scale("converge", users=21, tasks="all", seconds=8.0, epochs=150, seeds=(0, 1, 2),
                       architectures=("exolan", "delan-lstm", "delan", "mlp-tcn", "mlp", "tcn"), lims=(True,),
                       nolim_also=("exolan",),
-                      batch_size=2048, ms_norm="increment", patience=10, val_users=2, rollout_stride=10,
+                      batch_size=2048, ms_norm="increment", ms_horizons=(4, 20), patience=10, val_users=2,
+                      rollout_stride=10,
                       taskid_per_trial=500, taskid_epochs=200, real_epochs=300, real_seeds=(0, 1, 2)),
     "medium": Scale("medium", users=21, tasks="all", seconds=6.0, epochs=30, seeds=(0, 1, 2), batch_size=2048,
                     rollout_stride=10, taskid_per_trial=500, taskid_epochs=200, real_epochs=100,
@@ -120,12 +123,15 @@ class RunSpec:
     ms_norm: str = "state"
     patience: int = 0
     val_users: int = 0
+    ms_horizon: int = 4
 
     @property
     def run_id(self) -> str:
         # The id is the training configuration only, so that a configuration shared by two studies
         # (ExoLaN + LIM, inverse loss only = the FD study's first row) is trained once.
         extra = "" if self.ms_norm == "state" or not self.w_ms else f"_{self.ms_norm}"
+        if self.w_ms and self.ms_horizon != 4:
+            extra += f"_h{self.ms_horizon}"
         if self.patience:
             extra += f"_p{self.patience}v{self.val_users}"
         return (f"{self.dataset}/{method_name(self.arch, self.lim)}_fd{self.w_fd:g}_ms{self.w_ms:g}{extra}"
@@ -139,8 +145,8 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
     specs: list[RunSpec] = []
     stop = dict(patience=scale.patience, val_users=scale.val_users)
     for seed in scale.seeds:
-        run = lambda arch, lim, w_fd=0.0, w_ms=0.0, norm="state": RunSpec(
-            "world", arch, lim, w_fd, w_ms, seed, scale.epochs, scale.batch_size, norm, **stop)
+        run = lambda arch, lim, w_fd=0.0, w_ms=0.0, norm="state", h=4: RunSpec(
+            "world", arch, lim, w_fd, w_ms, seed, scale.epochs, scale.batch_size, norm, ms_horizon=h, **stop)
         for arch in scale.architectures:
             for lim in scale.lims:
                 specs.append(run(arch, lim))
@@ -149,9 +155,11 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
                 specs.append(run(arch, False))
         if scale.fd_study:
             specs.append(run("exolan", True, scale.w_fd))
-            specs.append(run("exolan", True, scale.w_fd, scale.w_ms, scale.ms_norm))
+            specs.append(run("exolan", True, scale.w_fd, scale.w_ms, scale.ms_norm, scale.ms_horizons[0]))
             if scale.ms_norm != "state":               # the paper's normalisation beside ours
-                specs.append(run("exolan", True, scale.w_fd, scale.w_ms, "state"))
+                specs.append(run("exolan", True, scale.w_fd, scale.w_ms, "state", scale.ms_horizons[0]))
+            for h in scale.ms_horizons[1:]:            # a longer horizon beside the paper's
+                specs.append(run("exolan", True, scale.w_fd, scale.w_ms, scale.ms_norm, h))
     if with_real:
         for seed in scale.real_seeds or scale.seeds:
             for arch in scale.architectures:

@@ -15,7 +15,7 @@ from ..runio import write_json
 from ..study import RunSpec, Scale, method_label, method_name
 from .figures import _figures
 from .markdown import _markdown
-from .stats import (FD_VARIANTS, PAPER, PAPER_NORM_KEY, REFERENCE_KEY, _fd_claims, _grad_norms,
+from .stats import (FD_VARIANTS, PAPER, PAPER_NORM_KEY, REFERENCE_KEY, _fd_claims, _grad_norms, horizon_key,
                     _intention_claims, _real_claims, _taskid, amplification, fd_stats, paired, torque_stats,
                     verdict)
 
@@ -28,9 +28,10 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
     figdir.mkdir(exist_ok=True)
     groups = meta.get("task_groups") or {}
 
-    def runs_of(dataset, arch, lim, w_fd=0.0, w_ms=0.0, ms_norm="state"):
+    def runs_of(dataset, arch, lim, w_fd=0.0, w_ms=0.0, ms_norm="state", h=None):
+        h = scale.ms_horizons[0] if h is None else h
         return [results[s.run_id] for s in specs if s.dataset == dataset and s.arch == arch and s.lim == lim
-                and s.w_fd == w_fd and s.w_ms == w_ms and (not w_ms or s.ms_norm == ms_norm)
+                and s.w_fd == w_fd and s.w_ms == w_ms and (not w_ms or (s.ms_norm, s.ms_horizon) == (ms_norm, h))
                 and s.run_id in results]
 
     summary: dict[str, Any] = {"meta": meta, "paper": PAPER}
@@ -56,6 +57,13 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
             if rr:
                 fd[key] = {"label": label + (f" [{norm} normalisation]" if wms != 0.0 else ""), "ms_norm": norm,
                            **fd_stats(rr, scale.horizons, meta.get("dt"))}
+                fd_runs[key] = (fd[key]["label"], rr)
+        for h in scale.ms_horizons[1:]:
+            rr = runs_of("world", "exolan", True, scale.w_fd, scale.w_ms, scale.ms_norm, h)
+            if rr:
+                key = horizon_key(h)
+                fd[key] = {"label": f"ExoLaN (w_fd, w_ms, H = {h}) [{scale.ms_norm} normalisation]",
+                           "ms_norm": scale.ms_norm, **fd_stats(rr, scale.horizons, meta.get("dt"))}
                 fd_runs[key] = (fd[key]["label"], rr)
     for mode, rows in (meta.get("reference_fd_rows") or {}).items():
         fd[f"{REFERENCE_KEY}: {mode}"] = {"label": f"the world's true leg, {mode} (reference)",

@@ -205,7 +205,8 @@ def _section_forward_dynamics(scale: Scale, fd: dict, grad_norms: dict, claims: 
     """2. Forward dynamics: the three loss variants (and the reference rows) against the paper's."""
     L = ["## 2. Forward dynamics", "",
          f"ExoLaN + LIM trained with the inverse loss only, + w_fd = {scale.w_fd:g}, + w_fd and w_ms = "
-         f"{scale.w_ms:g} (H = 4). Held-out users, all tasks (seen and unseen). q and q̇ MSE after 4, 10, "
+         f"{scale.w_ms:g} (H = {scale.ms_horizons[0]}"
+         + "".join(f"; also H = {h}" for h in scale.ms_horizons[1:]) + "). Held-out users, all tasks (seen and unseen). q and q̇ MSE after 4, 10, "
          "20 open-loop semi-implicit Euler steps (recorded τ, z and f_v; starts every "
          f"{scale.rollout_stride} samples). A diverged rollout (non-finite state) counts as infinite error.", "",
          "The multi-step loss divides each step's q and q̇ error by a variance: *state* is the paper's (the "
@@ -240,7 +241,7 @@ def _section_forward_dynamics(scale: Scale, fd: dict, grad_norms: dict, claims: 
 def _fd_table(fd: dict) -> list[str]:
     """Held-out q̈, q and q̇ errors per forward-dynamics variant: ours, then the paper's."""
     L = ["| model | " + " | ".join(FD_HEAD) + " |", "|---|" + "---|" * len(FD_COLS)]
-    for key in [k for k, _, _, _ in FD_VARIANTS] + [k for k in fd if k.startswith(REFERENCE_KEY)]:
+    for key in [k for k in fd if not k.startswith(REFERENCE_KEY)] + [k for k in fd if k.startswith(REFERENCE_KEY)]:
         if key in fd:
             L.append(f"| **ours** {fd[key]['label']} | " + " | ".join(_pm(fd[key]["mean_std"].get(c)) for c in FD_COLS)
                      + " |")
@@ -254,7 +255,7 @@ def _fd_table(fd: dict) -> list[str]:
 def _amplification_table(fd: dict, horizons) -> list[str]:
     """How much of each rollout error is the q̈ error integrated and how much compounds (`amplification`), and
     the multi-step loss' change of q̇ at the last horizon split into those two factors: ours and the paper's."""
-    ours = [k for k, _, _, _ in FD_VARIANTS if k in fd and f"amp{horizons[-1]}" in fd[k]["mean_std"]]
+    ours = [k for k in fd if not k.startswith(REFERENCE_KEY) and f"amp{horizons[-1]}" in fd[k]["mean_std"]]
     if not ours:
         return []
     h_last = horizons[-1]
@@ -279,7 +280,10 @@ def _amplification_table(fd: dict, horizons) -> list[str]:
             return fq, fa, fq * fa
         def m(k):
             return {c: fd[k]["mean_std"][c][0] for c in ("qdd", f"qd{h_last}")}
-        rows = (("ours", split(m("w_fd"), m("w_fd+w_ms"))), ("paper", split(P["w_fd"], P["w_fd+w_ms"])))
+        rows = [("ours", split(m("w_fd"), m("w_fd+w_ms")))]
+        rows += [(f"ours at H = {k.split('= ')[1].rstrip(')')}", split(m("w_fd"), m(k)))
+                 for k in fd if k.startswith("w_fd+w_ms (H =")]
+        rows += [("paper", split(P["w_fd"], P["w_fd+w_ms"]))]
         L += ["", f"The multi-step loss' change of q̇_{h_last} MSE (w_fd+w_ms over w_fd) = change of q̈ MSE x change "
               f"of A_{h_last}: " + "; ".join(f"{who} {_pct(fq - 1)} x {_pct(fa - 1)} = {_pct(t - 1)}"
                                            for who, (fq, fa, t) in rows) + "."]
