@@ -435,3 +435,19 @@ def test_default_workers_is_one_per_core_within_free_memory(monkeypatch):
 
 def test_available_memory_reads_a_positive_figure():
     assert R._available_memory() > 0
+
+
+def test_a_run_marker_survives_a_larger_plan_but_not_other_evaluation(tmp_path, monkeypatch):
+    from exolan import reproduce_exec as X
+    from exolan import study
+
+    ctx = X.JobContext(out=str(tmp_path), data_dir=str(tmp_path / "world"), real_dir=None, scale="tiny", backend=None)
+    spec = R.plan(R.SCALES["tiny"], with_real=False)[0]
+    key = X._spec_key(spec, ctx)
+    tiny = R.SCALES["tiny"]
+    monkeypatch.setitem(study.SCALES, "tiny", dataclasses.replace(tiny, seeds=(0, 1, 2), ms_horizons=(4, 8)))
+    assert X._spec_key(spec, ctx) == key                       # more runs in the plan: this one is still done
+    assert X._spec_key(dataclasses.replace(spec, ms_horizon=4), ctx) == key   # a field at its default
+    assert X._spec_key(dataclasses.replace(spec, seed=7), ctx) != key
+    monkeypatch.setitem(study.SCALES, "tiny", dataclasses.replace(tiny, rollout_stride=tiny.rollout_stride + 1))
+    assert X._spec_key(spec, ctx) != key                       # evaluated differently: not the same result

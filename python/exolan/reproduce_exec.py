@@ -19,13 +19,26 @@ from .reproduce_job import JobContext, run_job
 # The sweep: planning, resumable execution, local pool or Ray
 # --------------------------------------------------------------------------------------------------
 
+# Scale fields that only say which runs a sweep holds: each run's own values are in its spec, so adding a run
+# to a scale (a seed, an architecture, a horizon) leaves every finished run's marker valid.
+_PLAN_ONLY = frozenset({"seeds", "architectures", "lims", "nolim_also", "fd_study", "w_fd", "w_ms", "ms_norm",
+                        "ms_horizons", "epochs", "batch_size", "patience", "val_users", "real", "real_epochs",
+                        "real_seeds", "real_batch_size"})
+
+
+def _non_default(obj) -> dict:
+    """A dataclass's fields without those at their default: a field added later keeps old markers valid."""
+    return {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)
+            if f.default is dataclasses.MISSING or getattr(obj, f.name) != f.default}
+
+
 def _spec_key(spec: RunSpec, ctx: JobContext) -> str:
-    # what the DONE marker certifies: the run configuration and the evaluation settings
+    # what the DONE marker certifies: the run configuration, its data and the evaluation settings
     data = ctx.data_dir if spec.dataset == "world" else ctx.real_dir
     if data and Path(data).resolve() == (Path(ctx.out) / "world").resolve():
         data = "<out>/world"  # the sweep's own world is identified by the scale; the sweep may be moved
-    payload = json.dumps({"spec": spec.to_dict(), "scale": dataclasses.asdict(SCALES[ctx.scale]),
-                          "data": data}, sort_keys=True)
+    scale = {k: v for k, v in dataclasses.asdict(SCALES[ctx.scale]).items() if k not in _PLAN_ONLY}
+    payload = json.dumps({"spec": _non_default(spec), "scale": scale, "data": data}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 
