@@ -132,8 +132,8 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
     be = get_backend(backend)
     t0 = time.perf_counter()
     if data is None:
-        log(f"[reproduce] simulating the {scale.name} world ({scale.users} users, tasks={scale.tasks}, "
-            f"{scale.seconds or 'default'} s per trial)")
+        log(f"[reproduce] the {scale.name} world ({scale.users} users, tasks={scale.tasks}, "
+            f"{scale.seconds or 'default'} s per trial): simulated once, reused on a re-run")
         data_dir = ensure_world(out, scale, be)
     else:
         data_dir = Path(data).resolve()
