@@ -235,13 +235,13 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
     res.held_rows = held_idx
     res.e_held = np.zeros(len(held_idx))
     for j in joint_ids:
-        prob, f = probs[j], _physical_fit(res, probs[j], accepted[j], flat.joints[j], j)
+        prob = probs[j]
+        f, gains = _held_out_fit(res, prob, accepted[j], flat.joints[j], j, n_boot)
         cur[j] = f
         for e in accepted[j]:
             res.estimates[(e, j)] = _estimate(prob, f, e, flat.joints[j])
             res.accepted.append((e, j))
-            without = probs[j].fit([x for x in accepted[j] if x != e], intervals=False)
-            res.term_gain[(e, j)] = _held_gain(prob.held_sq(without), prob.held_sq(f), n_boot)
+            res.term_gain[(e, j)] = gains[e]
         res.base[flat.joints[j]] = _base_sizes(prob, f)
         res.e_held += prob.held_sq(f, held_idx)
         sel = prob.held
@@ -266,6 +266,25 @@ def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
         for e, te in bad:
             accepted.remove(e)
             res.status[(e, j)] = ("rejected", _outside_domain_text(e, te, " in the joint fit"))
+
+
+def _held_out_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, joint: str, j: int, n_boot: int):
+    """The joint fit in which every accepted term still earns its place on held-out data: a term accepted at its
+    step can lose its held-out share once later terms are in, and is then dropped (the weakest first, then refit;
+    the selection's own held-out rule applied to the final model, so it only removes). Returns the fit and
+    every remaining term's own held-out gain."""
+    while True:
+        f = _physical_fit(res, prob, accepted, joint, j)
+        gains = {e: _held_gain(prob.held_sq(prob.fit([x for x in accepted if x != e], intervals=False)),
+                               prob.held_sq(f), n_boot) for e in accepted}
+        weak = [e for e in accepted if gains[e]["ci"][0] <= 0]
+        if not weak:
+            return f, gains
+        e = min(weak, key=lambda x: gains[x]["gain"])
+        g = gains[e]
+        accepted.remove(e)
+        res.status[(e, j)] = ("rejected", f"no held-out gain in the joint fit with the other accepted terms: "
+                                          f"{g['gain']:.3g} [{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
 
 
 def _outside_domain_text(e: str, te, where: str) -> str:
