@@ -63,7 +63,7 @@ class PhysicsResult:
     status: dict = field(default_factory=dict)            # (effect, j) -> (status, reason)
     base: dict = field(default_factory=dict)              # joint name -> {name: (value, se)} for small bases
     heldout: dict = field(default_factory=dict)           # joint name -> rms, r2 (against the recorded τ)
-    e_held: np.ndarray | None = None                      # per held row of the flat: squared error (mass-norm.)
+    e_held: dict | None = None                            # per joint, per held row of the flat: squared error (mass-norm.)
     held_rows: np.ndarray | None = None
     cross: dict = field(default_factory=dict)             # (effect, j) -> TermEstimate on the learned residual
     term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
@@ -163,15 +163,15 @@ def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = iden
     return res
 
 
-def saturated_held(res: PhysicsResult, flat) -> np.ndarray:
-    """Per held-out row of the flat: the squared error (mass-normalised, summed over the joints) of the parametric
-    base with every linear candidate term at once — the most the parametric family explains without a grid."""
+def saturated_held(res: PhysicsResult, flat) -> dict[int, np.ndarray]:
+    """Per joint, per held-out row of the flat: the squared error (mass-normalised) of the parametric base with
+    every linear candidate term at once — the most the parametric family explains without a grid."""
     held_idx = flat.index("held").numpy()
-    e = np.zeros(len(held_idx))
+    out = {}
     for j, prob in res._probs.items():
         lin = [x for x, jj in res._cands if jj == j and ident.TERMS[x].grid is None]
-        e += prob.held_sq(prob.fit(lin, intervals=False), held_idx)
-    return e
+        out[j] = prob.held_sq(prob.fit(lin, intervals=False), held_idx)
+    return out
 
 
 def single_term(res: PhysicsResult, effect: str, j: int, joint: str) -> TermEstimate | None:
@@ -188,12 +188,15 @@ def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = i
     return select(setup(flat, effects, joint_ids, alpha, cutoff_hz, max_delay), flat, n_boot, log)
 
 
-def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResult:
-    """Forward selection under Holm's thresholds, rivals, and the final joint fits (module docstring)."""
+def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -> PhysicsResult:
+    """Forward selection under Holm's thresholds, rivals, and the final joint fits (module docstring). `joints`:
+    the joints whose candidates physics first decides (None: all); the rest are left to the learned path and not
+    tested here. Holm's thresholds keep m = every candidate of the family (both paths'): each path's own
+    step-down at α/(m − r) bounds the family-wise level of the two together by α (`procedure.run`)."""
     t0 = time.time() - res.seconds
     log = log or (lambda msg: None)
     probs, cur, cands, joint_ids, alpha = res._probs, res._fits, res._cands, res._joint_ids, res.alpha
-    pool, r = list(cands), 0
+    pool, r = [c for c in cands if joints is None or c[1] in joints], 0
     accepted = {j: [] for j in joint_ids}
     while pool:
         tried = []
@@ -233,7 +236,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
     # the final joint fits: every accepted term's estimate and interval, its own held-out share, the base's size
     held_idx = flat.index("held").numpy()
     res.held_rows = held_idx
-    res.e_held = np.zeros(len(held_idx))
+    res.e_held = {}
     for j in joint_ids:
         prob = probs[j]
         f, gains = _held_out_fit(res, prob, accepted[j], flat.joints[j], j, n_boot)
@@ -243,7 +246,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None) -> PhysicsResu
             res.accepted.append((e, j))
             res.term_gain[(e, j)] = gains[e]
         res.base[flat.joints[j]] = _base_sizes(prob, f)
-        res.e_held += prob.held_sq(f, held_idx)
+        res.e_held[j] = prob.held_sq(f, held_idx)
         sel = prob.held
         y = prob.sig.tau_raw[sel, j]
         mse = float(np.mean((y - f.pred[sel]) ** 2))

@@ -1,12 +1,13 @@
 """The diagnosis where the parametric base explains the data: the physics-first findings, the learned base's
 cross-check, the extended model (the learned base with the terms held at their physical sizes) and its gain.
 
-When this path is taken (`adequacy`): the parametric base with every linear candidate at once is not worse on
-the held-out segments than the learned reference (else the selection is not run at all: a misfitting base pushes
-its misfit into every candidate), and then the parametric base with its accepted terms is at least as good as the
-learned reference (the paired difference's block-bootstrap 95 % interval does not lie above 0). Then the network has nothing to add that the sizes need, and the expensive joint refits of every
-candidate (`procedure.learned_path`) are skipped. Otherwise the learned path runs and every candidate carries
-the parametric estimate beside its own (`attach`).
+When this path decides (`adequacy`, per joint equation): in a joint's equation, the parametric base with every
+linear candidate at once is not worse on the held-out segments than the learned reference (else that joint's
+selection is not run: a misfitting base pushes its misfit into every candidate), and then the parametric base with
+its accepted terms is at least as good as the learned reference (the paired difference's block-bootstrap 95 %
+interval does not lie above 0). Then the network has nothing to add that the sizes need, and the expensive joint
+refits of that joint's candidates (`procedure.learned_path`) are skipped. The other joints' candidates are decided
+by the learned path, and each of them carries the parametric estimate beside its own (`attach`).
 """
 from __future__ import annotations
 
@@ -31,18 +32,43 @@ RULE = ("Physics first: every candidate term was fitted jointly with a parametri
         "it is ambiguous.")
 
 
-def adequacy(e_param: np.ndarray, ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
-    """Is the parametric model (held-out squared errors `e_param` on the flat's held rows) at least as good on
-    held-out data as the learned reference?"""
+def adequacy(e_param: dict[int, np.ndarray], ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
+    """Is the parametric model (held-out squared errors per joint, `e_param[j]` on the flat's held rows) at least as
+    good on held-out data as the learned reference, in each joint's equation (`joints`: per joint name)? Each joint's
+    terms are fitted in its own equation, so each needs its own evidence: pooled over joints, a joint where the
+    reference misses an effect can carry the comparison for another where the parametric base misfits
+    (docs/DIAGNOSIS.md, seed 684). `adequate`: in every joint's equation."""
     held = flat.index("held")
     e = ((predict(ref, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
-    e_learned = e[:, joint_ids].sum(1)
-    ok = np.isfinite(e_param)
-    b = stats.bootstrap_mean(e_param[ok] - e_learned[ok], n_boot=n_boot)
-    return jsonable(dict(parametric_mse=float(np.mean(e_param[ok])), learned_mse=float(np.mean(e_learned[ok])),
-                         difference=b["mean"], ci=b["ci"], adequate=bool(b["ci"][0] <= 0), model=what,
-                         rule="parametric base adequate where the held-out difference parametric − learned is not "
-                              "above 0 (block-bootstrap 95 % CI)"))
+    joints, ok_all, tot_p, tot_l = {}, True, 0.0, 0.0
+    for j in joint_ids:
+        ok = np.isfinite(e_param[j]) & np.isfinite(e[:, j])
+        b = stats.bootstrap_mean(e_param[j][ok] - e[ok, j], n_boot=n_boot)
+        adequate = bool(b["ci"][0] <= 0)
+        ok_all &= adequate
+        mp, ml = float(np.mean(e_param[j][ok])), float(np.mean(e[ok, j]))
+        tot_p, tot_l = tot_p + mp, tot_l + ml
+        joints[flat.joints[j]] = dict(parametric_mse=mp, learned_mse=ml, difference=b["mean"], ci=b["ci"],
+                                      adequate=adequate)
+    return jsonable(dict(parametric_mse=tot_p, learned_mse=tot_l, joints=joints, adequate=ok_all, model=what,
+                         rule="physics first decides a joint's candidates where, in that joint's equation, the held-out "
+                              "difference parametric − learned is not above 0 (block-bootstrap 95 % CI); the learned "
+                              "path decides the other joints' candidates"))
+
+
+def per_joint(joints: dict, rule: str) -> dict:
+    """The gate's record for the report: each joint's numbers (from the last gate it met) and `paths`, joint name ->
+    the path that decides that joint's candidates; `path`: "physics first", "learned", or "per joint" where both do."""
+    paths = {nm: "physics first" if v["adequate"] else "learned" for nm, v in joints.items()}
+    kinds = set(paths.values())
+    return jsonable(dict(joints=joints, paths=paths, path=kinds.pop() if len(kinds) == 1 else "per joint",
+                         adequate=all(v["adequate"] for v in joints.values()), rule=rule))
+
+
+def section(phys: physics.PhysicsResult, flat, adequate: dict) -> dict:
+    """The report's physics-first section: the identification, the gate per joint and which path decided."""
+    return dict(phys.to_json(flat.joints), adequacy=adequate, path=adequate["path"], paths=adequate["paths"],
+                rule=RULE)
 
 
 def learned_residual(ref, flat) -> np.ndarray:
@@ -138,16 +164,20 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
                 e["note"] = f"{e['note']}; {note}" if e.get("note") else note
 
 
-def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict, joint_ids, held, limits, log) -> dict:
-    """The physics-first diagnosis' result dict (`procedure.run`'s return shape)."""
-    from . import residuals as R
-    from .limits import torque_unit
-    from .refits import metrics as _metrics, refit_terms_frozen as _refit_terms_frozen
-    from .results import public as _public, strip as _strip
-    from .rules import paired_gain as _gain
-
+def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict, joint_ids, held, limits, log,
+           learned: dict | None = None) -> dict:
+    """The physics-first diagnosis' result dict (`procedure.run`'s return shape) for the joints `joint_ids`;
+    `learned`: the learned path's result for the other joints (None: physics first decides every joint)."""
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]
+    if learned is not None and (not accepted or any(e["status"] == "accepted" for e in learned["results"])):
+        return beside(learned, results, phys, flat, adequate)
+    from . import residuals as R
+    from .limits import torque_unit
+    from .refits import metrics as _metrics
+    from .results import public as _public, strip as _strip
+
+    results += learned["results"] if learned else []        # the learned path's joints: nothing accepted there
     starts = R.rollout_starts(flat, s.horizon, seed=s.seed)
     baseline, ro_base = _metrics(ref, flat, s, starts)
     baseline["source"] = base_source
@@ -155,27 +185,8 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     structure = R.residual_structure(ref, flat, held)
     ext_model, ro_ext, extended = None, None, None
     if accepted:
-        log(f"extended model: the learned base with {', '.join(f'{a}:{flat.joints[j]}' for a, j in accepted)} held at "
-            f"their physical sizes, its networks refitted")
-        ext_model = extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
-        e_ref = ((predict(ref, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
-        e_ext = ((predict(ext_model, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
-        g = _gain(e_ref.sum(1), e_ext.sum(1), s)
-        extended, ro_ext = _metrics(ext_model, flat, s, starts)
-        extended.update(terms=[f"{a}:{flat.joints[j]}" for a, j in accepted],
-                        model="the reference's refit with the terms held at the parametric base's estimates",
-                        heldout_gain=g["gain"], heldout_gain_ci=g["ci"], relative_gain=g["rel"],
-                        relative_gain_ci=g["rel_ci"],
-                        parameters={f"{a}:{flat.joints[j]}": ext_model.estimate(a, j) for a, j in accepted})
-        extended["rollout_gain"] = {}
-        for H in (4, 10, 20):
-            if H <= s.horizon and len(starts):
-                d = ro_base["q_per_start"][:, H - 1] - ro_ext["q_per_start"][:, H - 1]
-                b = stats.bootstrap_mean(d, n_boot=s.n_boot // 2)
-                extended["rollout_gain"][f"q_mse_{H}"] = dict(gain=b["mean"], ci=b["ci"])
-        log(f"extended model: held-out gain {g['gain']:.4g} [{g['ci'][0]:.4g}, {g['ci'][1]:.4g}] "
-            f"({torque_unit(flat)})²")
-        if g["ci"][1] <= 0:
+        ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log)
+        if extended["heldout_gain_ci"][1] <= 0:
             for e in results:
                 if e["status"] == "accepted":
                     e["note"] = ((e.get("note") + "; ") if e.get("note") else "") + (
@@ -185,7 +196,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     rep = {"baseline": _strip(baseline), "findings": findings, "rejected": rejected,
            "extended": _strip(extended) if extended else {"note": "nothing found: the base model is kept",
                                                          **_strip(baseline)},
-           "physics": dict(phys.to_json(flat.joints), adequacy=adequate, path="physics first", rule=RULE),
+           "physics": section(phys, flat, adequate),
            "residuals": structure, "detection_limits": limits,
            "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in s.__dict__.items()},
            "data": dict(trials=len(trials), samples=int(flat.q.shape[0]), heldout=int(len(held)),
@@ -194,3 +205,50 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
                         split="held-out time segments (1 in 4, ~2 s) within every trial")}
     return dict(report=rep, flat=flat, base=base, ref=ref, ext_model=ext_model, ro_base=ro_base, ro_ext=ro_ext,
                 results=results)
+
+
+def beside(learned: dict, results: list, phys: physics.PhysicsResult, flat, adequate: dict) -> dict:
+    """The learned path's result (it accepted terms on its joints, or physics first accepted none on its own) with
+    physics first's verdicts on the other joints beside its own. Its extended model carries its own terms only:
+    a physics-first finding there says it is sized by the parametric base alone."""
+    from .results import public as _public
+
+    for e in results:
+        if e["status"] == "accepted":
+            e["note"] = ((e.get("note") + "; ") if e.get("note") else "") + (
+                "sized by the parametric base (physics first decided this joint); the extended model carries the "
+                "learned path's terms only")
+    rep = learned["report"]
+    rep["findings"] += [_public(e) for e in results if e["status"] == "accepted"]
+    rep["rejected"] += [_public(e) for e in results if e["status"] != "accepted"]
+    rep["physics"] = section(phys, flat, adequate)
+    learned["results"] += results
+    return learned
+
+
+def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, log):
+    """The extended model with the accepted terms at their physical sizes, its held-out and rollout gains."""
+    from .limits import torque_unit
+    from .refits import metrics as _metrics, refit_terms_frozen as _refit_terms_frozen
+    from .rules import paired_gain as _gain
+
+    log(f"extended model: the learned base with {', '.join(f'{a}:{flat.joints[j]}' for a, j in accepted)} held at "
+        f"their physical sizes, its networks refitted")
+    ext_model = extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
+    e_ref = ((predict(ref, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
+    e_ext = ((predict(ext_model, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
+    g = _gain(e_ref.sum(1), e_ext.sum(1), s)
+    extended, ro_ext = _metrics(ext_model, flat, s, starts)
+    extended.update(terms=[f"{a}:{flat.joints[j]}" for a, j in accepted],
+                    model="the reference's refit with the terms held at the parametric base's estimates",
+                    heldout_gain=g["gain"], heldout_gain_ci=g["ci"], relative_gain=g["rel"],
+                    relative_gain_ci=g["rel_ci"],
+                    parameters={f"{a}:{flat.joints[j]}": ext_model.estimate(a, j) for a, j in accepted})
+    extended["rollout_gain"] = {}
+    for H in (4, 10, 20):
+        if H <= s.horizon and len(starts):
+            d = ro_base["q_per_start"][:, H - 1] - ro_ext["q_per_start"][:, H - 1]
+            b = stats.bootstrap_mean(d, n_boot=s.n_boot // 2)
+            extended["rollout_gain"][f"q_mse_{H}"] = dict(gain=b["mean"], ci=b["ci"])
+    log(f"extended model: held-out gain {g['gain']:.4g} [{g['ci'][0]:.4g}, {g['ci'][1]:.4g}] ({torque_unit(flat)})²")
+    return ext_model, extended, ro_ext

@@ -74,23 +74,28 @@ def fit_base(flat, s: Settings, model):
     return base, base_start, describe_base(base, flat, s, given=model is not None)
 
 
-def physics_first(flat, s: Settings, ref, joint_ids, phys):
-    """The parametric family at its most (every linear term at once) against the learned reference: where even that
-    is worse on held-out data the parametric base cannot decide and its selection is not run; else its selection,
-    the cross-check with the learned base, and adequacy again with its accepted terms only."""
+def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
+    """The gate per joint equation (`gate`: `physics_path.adequacy` or a test's stub): the parametric family at its
+    most (every linear term at once) against the learned reference; the selection runs on the candidates of the
+    joints where it is not worse on held-out data, then the cross-check, then the gate again with the accepted terms
+    only. Returns the gate with `paths`: joint name -> the path that decides its candidates."""
     from . import physics, physics_path
 
-    adequate = physics_path.adequacy(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
-                                     what="the parametric base with every linear candidate term")
-    if adequate["adequate"]:
-        physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m))
+    first = gate(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
+                 what="the parametric base with every linear candidate term")
+    joints = {nm: dict(v, model=first["model"]) for nm, v in first["joints"].items()}
+    passing = [j for j in joint_ids if joints[flat.joints[j]]["adequate"]]
+    if passing:
+        physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m), joints=passing)
         log(s, phys.summary(flat.joints))
-        physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), joint_ids, log=lambda m: log(s, m))
-        adequate = physics_path.adequacy(phys.e_held, ref, flat, joint_ids, n_boot=s.n_boot,
-                                         what="the parametric base with its accepted terms")
-    log(s, f"parametric base held-out MSE {adequate['parametric_mse']:.4g}, learned {adequate['learned_mse']:.4g} "
-           f"({torque_unit(flat)})²: " + ("physics first decides" if adequate["adequate"] else
-                                         "the learned base explains more: the learned path decides"))
+        physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), passing, log=lambda m: log(s, m))
+        second = gate(phys.e_held, ref, flat, passing, n_boot=s.n_boot,
+                      what="the parametric base with its accepted terms")
+        joints.update({nm: dict(v, model=second["model"]) for nm, v in second["joints"].items()})
+    adequate = physics_path.per_joint(joints, first.get("rule", ""))
+    for nm, v in joints.items():
+        log(s, f"{nm}: parametric base held-out MSE {v['parametric_mse']:.4g}, learned {v['learned_mse']:.4g} "
+               f"({torque_unit(flat)})² ({v['model']}): the {adequate['paths'][nm]} path decides its candidates")
     return adequate
 
 
@@ -143,19 +148,28 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
                  budget=Budget(s.alpha, sum(1 for eff in s.effects for _ in joint_ids
                                             if flat.has_exo or not LIBRARY[eff].needs_exo)))
     ss.e_ref_user, ss.e_ref = ss.errors(ref)
-    adequate = physics_first(flat, s, ref, joint_ids, phys) if phys is not None else None
-    decides = bool(adequate and adequate["adequate"])
+    adequate = physics_first(flat, s, ref, joint_ids, phys, tools.adequacy) if phys is not None else None
+    # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
+    # joints whose own gate passed, the learned path the others'. (A candidate whose columns touched several
+    # joints' equations would go to physics first only if every joint it touches passed; none does today.)
+    phys_joints = [j for j in joint_ids if adequate and adequate["paths"][flat.joints[j]] == "physics first"]
+    learned_joints = [j for j in joint_ids if j not in phys_joints]
     # the physics path decides nothing on the refit noise: one twin measures it for the report
-    noise = refit_noise(base, flat, s, ss.e_ref, ss.errors, 1 if decides else max(int(s.n_twins), 1), scale)
+    noise = refit_noise(base, flat, s, ss.e_ref, ss.errors, max(int(s.n_twins), 1) if learned_joints else 1, scale)
     ss.sigma_r, ss.twin_d = noise["sigma"], noise.pop("twin_d")
     log(s, f"reference held-out MSE {ss.e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r "
            f"{ss.sigma_r:.3g} ({scale}, {len(noise['twin_differences'])} twin refits)")
-    if decides:
-        from . import physics_path
-        limits = all_limits(flat, s, base_start, ref, held, w_held, ss.sigma_r)
-        return physics_path.report(flat, s, trials, base, ref, base_source, noise, phys, adequate, joint_ids,
-                                   held, limits, lambda m: log(s, m))
-    return learned_path(ss, trials, phys, adequate, base_source, noise)
+    learned = None
+    if learned_joints:      # the budget keeps m of the whole family: no path's thresholds loosen (`physics.select`)
+        ss.joint_ids = learned_joints
+        learned = learned_path(ss, trials, phys, adequate, base_source, noise)
+    if not phys_joints:
+        return learned
+    from . import physics_path
+    limits = (learned["report"]["detection_limits"] if learned else
+              all_limits(flat, s, base_start, ref, held, w_held, ss.sigma_r))
+    return physics_path.report(flat, s, trials, base, ref, base_source, noise, phys, adequate, phys_joints,
+                               held, limits, lambda m: log(s, m), learned=learned)
 
 
 def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: dict) -> dict:
@@ -197,8 +211,8 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
     for e in results:
         if e["status"] in ("accepted", "ambiguous") and e["kind"] == "finding":
             log(s, e.summary())
+    from . import physics_path
     if phys is not None:
-        from . import physics_path
         physics_path.attach(results, phys, flat)
     report = {"baseline": strip(baseline),
               "findings": [public(e) for e in results if e["status"] == "accepted"],
@@ -206,8 +220,7 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
               "extended": strip(ext_rep) if ext_rep else {"note": "nothing found: the base model is kept",
                                                           **strip(baseline)},
               "residuals": structure, "detection_limits": limits,
-              "physics": (dict(phys.to_json(flat.joints), adequacy=adequate, path="learned",
-                               rule=physics_path.RULE) if phys is not None else None),
+              "physics": physics_path.section(phys, flat, adequate) if phys is not None else None,
               "settings": {k: (list(v) if isinstance(v, tuple) else v) for k, v in s.__dict__.items()},
               "data": dict(trials=len(trials), samples=int(flat.q.shape[0]), heldout=int(len(ss.held)),
                            torque_unit=torque_unit(flat), joints=list(flat.joints), joint_types=list(flat.joint_types),

@@ -293,9 +293,12 @@ def _physics_lines(ph: dict | None, unit: str) -> list[str]:
         return []
     ad = ph.get("adequacy") or {}
     L = ["", "## Physics first: the parametric base", "", ph.get("method", ""), ""]
-    L.append(f"Decided by: **{ph.get('path')}** path — held-out MSE of the parametric base with its terms "
-             f"{_fmt(ad.get('parametric_mse'))}, of the learned reference {_fmt(ad.get('learned_mse'))} ({unit})²; "
-             f"difference {_fmt(ad.get('difference'), 3)} CI {_fmt(ad.get('ci'), 3)} ({ad.get('rule', '')}).")
+    L.append(f"Decided by: **{ph.get('path')}** path ({ad.get('rule', '')}); held-out MSE ({unit})², per joint:")
+    paths = ph.get("paths") or {}
+    for j, v in (ad.get("joints") or {}).items():
+        L.append(f"- {j}: decided by the **{paths.get(j, '?')}** path — {v.get('model', 'the parametric base')} "
+                 f"{_fmt(v['parametric_mse'])}, the learned reference {_fmt(v['learned_mse'])}, difference "
+                 f"{_fmt(v['difference'], 3)} CI {_fmt(v['ci'], 3)}: {'adequate' if v['adequate'] else 'not adequate'}")
     for j, v in (ph.get("heldout") or {}).items():
         L.append(f"- {j}: held-out rms {_fmt(v.get('rms'))} against the recorded torque ({_fmt(v.get('rms_filtered'))} "
                  f"against its low-pass), R² {_fmt(v.get('r2'), 4)}")

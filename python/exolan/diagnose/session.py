@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import inference, refits, rules, secondlook, subjects
+from . import inference, physics_path, refits, rules, secondlook, subjects
 from .candidates import LIBRARY
 from .flat import Flat
 from .settings import Budget, Settings, log
@@ -17,7 +17,8 @@ from .settings import Budget, Settings, log
 
 @dataclass
 class Tools:
-    """The fits and judgements the learned path makes; defaults are the real ones."""
+    """The fits and judgements the learned path makes, and the gate that routes each joint to a path; defaults are
+    the real ones."""
     fresh_fit: Callable = refits.fresh_fit              # a set of terms fitted from scratch
     around_estimates: Callable = refits.around_estimates  # the reference refitted with the terms frozen
     gain: Callable = rules.paired_gain                  # the paired held-out gain and its bootstrap
@@ -30,6 +31,7 @@ class Tools:
     param_ci: Callable = inference.param_ci             # θ and its HAC interval
     subject_form: Callable = subjects.subject_form      # a subject form proposed from the training rows
     inertia_confused: tuple = refits.INERTIA_CONFUSED   # terms fitted from scratch without the acceleration term
+    adequacy: Callable = physics_path.adequacy          # the gate per joint: which path decides each joint's terms
 
 
 @dataclass

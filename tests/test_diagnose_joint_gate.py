@@ -1,0 +1,61 @@
+"""The decision per joint equation: physics first decides the candidates of the joints whose own gate passes, the
+learned path those of the others (`procedure.run`). The gate is a stub passed as `Tools(adequacy=...)`."""
+import pytest
+
+from exolan.diagnose import diagnose
+from exolan.diagnose.session import Tools
+from exolan.diagnose.synthetic import two_link
+
+EFFECTS = ("viscous_damping", "coulomb_friction")
+
+
+def _gate(verdict: dict, calls: list):
+    """A gate that passes the joints `verdict` names True, with numbers the report must show."""
+    def gate(e_param, ref, flat, joint_ids, n_boot, what=""):
+        calls.append(([flat.joints[j] for j in joint_ids], what))
+        joints = {flat.joints[j]: dict(parametric_mse=1.0 + j, learned_mse=2.0 + j, difference=-1.0,
+                                       ci=[-1.5, -0.5] if verdict[flat.joints[j]] else [0.5, 1.5],
+                                       adequate=verdict[flat.joints[j]]) for j in joint_ids}
+        return dict(joints=joints, adequate=all(v["adequate"] for v in joints.values()), model=what, rule="stub")
+    return gate
+
+
+@pytest.fixture(scope="module")
+def arm():
+    trials, _ = two_link(n_trials=2, seconds=6.0, seed=3, damping=(1, 2.0))
+    return trials
+
+
+def _run(arm, tmp_path, verdict):
+    calls = []
+    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+                   rescue=False, n_twins=1, verbose=False, tools=Tools(adequacy=_gate(verdict, calls)))
+    entries = [e for e in rep["findings"] + rep["rejected"] if e["effect"] in EFFECTS]
+    # a learned-path entry carries its post-hoc screen; a physics-first entry never does
+    by = {(e["effect"], e["joint"]): ("learned" if "screen" in e else "physics first") for e in entries}
+    return rep, by, calls
+
+
+@pytest.mark.parametrize("verdict", [dict(shoulder=False, elbow=True), dict(shoulder=True, elbow=True),
+                                     dict(shoulder=False, elbow=False)])
+def test_each_joints_candidates_are_decided_by_the_path_its_own_gate_chose(arm, tmp_path, verdict):
+    rep, by, calls = _run(arm, tmp_path, verdict)
+    want = {nm: "physics first" if ok else "learned" for nm, ok in verdict.items()}
+    assert by == {(e, nm): want[nm] for e in EFFECTS for nm in verdict}
+    ph = rep["physics"]
+    assert ph["paths"] == want
+    assert ph["path"] == (want["shoulder"] if want["shoulder"] == want["elbow"] else "per joint")
+    # physics first tested only the candidates of the joints that passed their gate ...
+    assert {t["joint"] for t in ph["tests"]} <= {nm for nm, ok in verdict.items() if ok}
+    # ... the second gate (with the accepted terms) asked only about those joints
+    passing = [nm for nm in ("shoulder", "elbow") if verdict[nm]]
+    assert [c[0] for c in calls] == [["shoulder", "elbow"]] + ([passing] if passing else [])
+    # the report names, per joint, the path and that joint's gate numbers
+    for nm in verdict:
+        g = ph["adequacy"]["joints"][nm]
+        assert g["adequate"] is verdict[nm] and g["parametric_mse"] in (1.0, 2.0) and "ci" in g
+    md = (tmp_path / "diagnosis.md").read_text()
+    for nm, path in want.items():
+        assert f"- {nm}: decided by the **{path}** path" in md
+    # one budget: every path's thresholds count the whole family (2 effects x 2 joints)
+    assert all(t["threshold"] <= 0.05 / (4 - t["step"] + 1) + 1e-12 for t in ph["tests"])
