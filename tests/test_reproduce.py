@@ -451,3 +451,34 @@ def test_a_run_marker_survives_a_larger_plan_but_not_other_evaluation(tmp_path, 
     assert X._spec_key(dataclasses.replace(spec, seed=7), ctx) != key
     monkeypatch.setitem(study.SCALES, "tiny", dataclasses.replace(tiny, rollout_stride=tiny.rollout_stride + 1))
     assert X._spec_key(spec, ctx) != key                       # evaluated differently: not the same result
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_pool_workers_end_with_a_killed_sweep(tmp_path):
+    """A sweep ended by SIGKILL/SIGTERM of its process alone (no Ctrl-C to the group) leaves no workers."""
+    import subprocess
+    import time
+
+    script = tmp_path / "sweep.py"
+    script.write_text(
+        "import os, sys, time\n"
+        "from concurrent.futures import ProcessPoolExecutor\n"
+        "from exolan.reproduce_exec import _worker_init\n"
+        "if __name__ == '__main__':\n"
+        "    ex = ProcessPoolExecutor(1, initializer=_worker_init, initargs=(1,))\n"
+        "    print(ex.submit(os.getpid).result(), flush=True)\n"
+        "    ex.submit(time.sleep, 600)\n"
+        "    time.sleep(600)\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1] / "python"))
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
+    worker = int(proc.stdout.readline())
+    proc.kill()
+    proc.wait()
+    for _ in range(100):
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.1)
+    os.kill(worker, 9)
+    pytest.fail("the pool worker outlived its killed sweep")

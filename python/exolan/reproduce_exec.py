@@ -5,6 +5,8 @@ import dataclasses
 import hashlib
 import json
 import os
+import signal
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -67,7 +69,21 @@ def load_result(out: Path, spec: RunSpec) -> dict:
     return r
 
 
+def _die_with_parent() -> None:
+    """Linux: a pool worker gets SIGTERM when the sweep's process ends. A sweep stopped by `kill` (not Ctrl-C,
+    which reaches the whole process group) otherwise left its workers training on, 1.4 GB each (measured)."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # 1 = PR_SET_PDEATHSIG
+        except OSError:
+            return
+        if os.getppid() == 1:                    # the parent ended before the line above: follow it now
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
 def _worker_init(threads: int) -> None:
+    _die_with_parent()
     # one BLAS/OpenMP pool per worker of `threads` threads: workers x threads = the cores given
     os.environ["OMP_NUM_THREADS"] = str(threads)
     os.environ["MKL_NUM_THREADS"] = str(threads)
