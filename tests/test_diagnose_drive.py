@@ -152,3 +152,30 @@ def test_physics_first_sizes_an_actuation_delay_by_variable_projection():
     msg = f"seed {seed}, d {d}: {res.summary(('knee',))}"
     assert [e for e, _ in res.accepted] == ["actuation_delay"], msg
     assert abs(res.estimates[("actuation_delay", 0)].estimate / d - 1) <= 0.15, msg
+
+
+def test_a_physics_first_finding_reports_which_tasks_and_subjects_carry_it():
+    """Two recordings of one drive under two task names and two subjects: the found friction's entry shows its
+    own held-out gain per task and per subject (the evidence a learned-path finding shows too)."""
+    from types import SimpleNamespace
+    from exolan.diagnose import physics_path
+    from exolan.diagnose.settings import Settings
+    seed = int(np.random.default_rng().integers(10_000))
+    truth = dict(_draw(np.random.default_rng(seed)), coulomb=0.0)
+    trials = []
+    for k, (subject, task) in enumerate((("S1", "slow"), ("S2", "fast"))):
+        t, x, F, _ = servo_drive(seed=seed + k, **truth)
+        trials.append(SimpleNamespace(subject=subject, task=task, name=f"d{k}", side="", mass=1.0, dt=0.001,
+                                      joints=("x",), joint_types=("prismatic",), q=x[:, None],
+                                      qd=np.gradient(x, 0.001)[:, None], qdd=np.zeros((len(x), 1)), tau=F[:, None],
+                                      tau_e=np.zeros((len(x), 1)), f_v=np.zeros(len(x)),
+                                      cop=np.full((len(x), 2), np.nan), valid=np.ones(len(x), bool)))
+    flat = prepare(trials)
+    res = physics.identify(flat, FITTED, [0])
+    msg = f"seed {seed}, truth {truth}: {res.summary(('x',))}"
+    assert ("viscous_damping", 0) in res.accepted, msg
+    e = next(x for x in physics_path.entries(res, flat, Settings(), [0]) if x["effect"] == "viscous_damping")
+    inv = e["task_invariance"]
+    assert inv["by"] == "task" and set(inv["groups"]) == {"slow", "fast"}, msg
+    assert all(v > 0 for v in inv["groups"].values()), msg          # a real friction helps in both
+    assert set(e["subject_gains"]) == {"S1", "S2"} and all(v["gain"] > 0 for v in e["subject_gains"].values()), msg

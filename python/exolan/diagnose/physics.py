@@ -67,6 +67,7 @@ class PhysicsResult:
     held_rows: np.ndarray | None = None
     cross: dict = field(default_factory=dict)             # (effect, j) -> TermEstimate on the learned residual
     term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
+    term_rows: dict = field(default_factory=dict)         # (effect, j) -> that gain per held row of the flat
     seconds: float = 0.0
     cutoff_hz: float = 0.0
 
@@ -245,6 +246,8 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             res.estimates[(e, j)] = _estimate(prob, f, e, flat.joints[j])
             res.accepted.append((e, j))
             res.term_gain[(e, j)] = gains[e]
+            without = prob.fit([x for x in accepted[j] if x != e], intervals=False)
+            res.term_rows[(e, j)] = prob.held_sq(without, held_idx) - prob.held_sq(f, held_idx)
         res.base[flat.joints[j]] = _base_sizes(prob, f)
         res.e_held[j] = prob.held_sq(f, held_idx)
         sel = prob.held

@@ -15,10 +15,11 @@ import numpy as np
 import torch
 
 from ..runio import jsonable
-from . import physics, stats
+from . import physics, rules, stats
 from .candidates import LIBRARY, blank_entry
 from .export import extend
 from .fit import predict
+from .flat import sample_groups
 
 RULE = ("Physics first: every candidate term was fitted jointly with a parametric rigid-body base (inertia, "
         "gravity where it can act, a constant offset, the insole contact where there is one) by weighted least "
@@ -76,6 +77,22 @@ def learned_residual(ref, flat) -> np.ndarray:
     return (flat.tau - predict(ref, flat, idx)).double().numpy()
 
 
+def evidence(phys: physics.PhysicsResult, flat, s, key: tuple) -> dict:
+    """Which data carry a physics-first term's held-out gain (its own share in the joint fit, per held row): the
+    gain by task (or trial) and by subject. Reported, not decided on: the physics-first rules do not look again."""
+    d = phys.term_rows.get(key)
+    if d is None:
+        return {}
+    held = flat.index("held")
+    groups, kind = sample_groups(flat, held)
+    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[held].numpy()])
+    ok = np.isfinite(d)
+    inv = dict(by=kind, groups={str(g): float(d[ok & (groups == g)].mean()) for g in np.unique(groups[ok])},
+               scale="parametric base, unweighted",
+               note="which data carry the gain; reported, not a decision rule of the physics-first path")
+    return dict(task_invariance=inv, subject_gains=rules.subject_gains(d[ok], subj[ok], s))
+
+
 def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
     """The report's candidate entries from the physics-first verdicts (the same keys as the learned path's)."""
     ver = physics.verdicts(phys)
@@ -117,6 +134,7 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
                     if g:
                         e.update(heldout_gain=g["gain"], heldout_gain_ci=g["ci"],
                                  decision_gain=dict(g, scale="parametric base, unweighted"))
+                    e.update(**evidence(phys, flat, s, key))
                 if key in phys.cross:
                     e["cross_check"] = phys.cross[key].to_json()
             else:
