@@ -59,3 +59,26 @@ def test_each_joints_candidates_are_decided_by_the_path_its_own_gate_chose(arm, 
         assert f"- {nm}: decided by the **{path}** path" in md
     # one budget: every path's thresholds count the whole family (2 effects x 2 joints)
     assert all(t["threshold"] <= 0.05 / (4 - t["step"] + 1) + 1e-12 for t in ph["tests"])
+
+
+def test_where_both_paths_accept_the_learned_paths_model_is_handed_over_and_the_physics_finding_says_so():
+    from types import SimpleNamespace
+
+    from exolan.diagnose import physics_path
+    from exolan.diagnose.candidates import blank_entry
+    from exolan.diagnose.physics import PhysicsResult
+
+    flat = SimpleNamespace(joints=["hip", "knee"], joint_types=["revolute", "revolute"])
+    gate = dict(parametric_mse=1.0, learned_mse=1.0, difference=0.0, ci=[-1.0, 1.0])
+    adequate = physics_path.per_joint(dict(hip=dict(gate, adequate=False), knee=dict(gate, adequate=True)), "stub")
+    hip = blank_entry("viscous_damping", 0, flat, ["S01"])
+    hip.update(status="accepted", reason="learned", estimate=0.5, ci=[0.4, 0.6])
+    learned = dict(report=dict(findings=[hip.to_json()], rejected=[], physics=None), results=[hip], ext_model="M")
+    knee = blank_entry("viscous_damping", 1, flat, ["S01"])
+    knee.update(status="accepted", reason="physics", estimate=2.0, ci=[1.9, 2.1])
+    out = physics_path.beside(learned, [knee], PhysicsResult(alpha=0.05, family=4), flat, adequate)
+    assert out["ext_model"] == "M" and [(f["joint"], f["estimate"]) for f in out["report"]["findings"]] == [
+        ("hip", 0.5), ("knee", 2.0)]
+    assert "extended model carries the learned path's terms only" in out["report"]["findings"][1]["note"]
+    assert out["report"]["physics"]["paths"] == dict(hip="learned", knee="physics first")
+    assert out["report"]["physics"]["path"] == "per joint"
