@@ -240,14 +240,13 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     res.e_held = {}
     for j in joint_ids:
         prob = probs[j]
-        f, gains = _held_out_fit(res, prob, accepted[j], flat.joints[j], j, n_boot)
+        f, gains, withouts = _held_out_fit(res, prob, accepted[j], flat.joints[j], j, n_boot)
         cur[j] = f
         for e in accepted[j]:
             res.estimates[(e, j)] = _estimate(prob, f, e, flat.joints[j])
             res.accepted.append((e, j))
             res.term_gain[(e, j)] = gains[e]
-            without = prob.fit([x for x in accepted[j] if x != e], intervals=False)
-            res.term_rows[(e, j)] = prob.held_sq(without, held_idx) - prob.held_sq(f, held_idx)
+            res.term_rows[(e, j)] = prob.held_sq(withouts[e], held_idx) - prob.held_sq(f, held_idx)
         res.base[flat.joints[j]] = _base_sizes(prob, f)
         res.e_held[j] = prob.held_sq(f, held_idx)
         sel = prob.held
@@ -277,15 +276,15 @@ def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
 def _held_out_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, joint: str, j: int, n_boot: int):
     """The joint fit in which every accepted term still earns its place on held-out data: a term accepted at its
     step can lose its held-out share once later terms are in, and is then dropped (the weakest first, then refit;
-    the selection's own held-out rule applied to the final model, so it only removes). Returns the fit and
-    every remaining term's own held-out gain."""
+    the selection's own held-out rule applied to the final model, so it only removes). Returns the fit, every
+    remaining term's own held-out gain and the fit without that term."""
     while True:
         f = _physical_fit(res, prob, accepted, joint, j)
-        gains = {e: _held_gain(prob.held_sq(prob.fit([x for x in accepted if x != e], intervals=False)),
-                               prob.held_sq(f), n_boot) for e in accepted}
+        withouts = {e: prob.fit([x for x in accepted if x != e], intervals=False) for e in accepted}
+        gains = {e: _held_gain(prob.held_sq(withouts[e]), prob.held_sq(f), n_boot) for e in accepted}
         weak = [e for e in accepted if gains[e]["ci"][0] <= 0]
         if not weak:
-            return f, gains
+            return f, gains, withouts
         e = min(weak, key=lambda x: gains[x]["gain"])
         g = gains[e]
         accepted.remove(e)
