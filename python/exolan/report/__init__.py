@@ -63,7 +63,7 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
             if rr:
                 key = horizon_key(h)
                 fd[key] = {"label": f"ExoLaN (w_fd, w_ms, H = {h}) [{scale.ms_norm} normalisation]",
-                           "ms_norm": scale.ms_norm, **fd_stats(rr, scale.horizons, meta.get("dt"))}
+                           "ms_norm": scale.ms_norm, "ms_horizon": h, **fd_stats(rr, scale.horizons, meta.get("dt"))}
                 fd_runs[key] = (fd[key]["label"], rr)
     for mode, rows in (meta.get("reference_fd_rows") or {}).items():
         fd[f"{REFERENCE_KEY}: {mode}"] = {"label": f"the world's true leg, {mode} (reference)",

@@ -281,8 +281,7 @@ def _amplification_table(fd: dict, horizons) -> list[str]:
         def m(k):
             return {c: fd[k]["mean_std"][c][0] for c in ("qdd", f"qd{h_last}")}
         rows = [("ours", split(m("w_fd"), m("w_fd+w_ms")))]
-        rows += [(f"ours at H = {k.split('= ')[1].rstrip(')')}", split(m("w_fd"), m(k)))
-                 for k in fd if k.startswith("w_fd+w_ms (H =")]
+        rows += [(f"ours at H = {fd[k]['ms_horizon']}", split(m("w_fd"), m(k))) for k in fd if "ms_horizon" in fd[k]]
         rows += [("paper", split(P["w_fd"], P["w_fd+w_ms"]))]
         L += ["", f"The multi-step loss' change of q̇_{h_last} MSE (w_fd+w_ms over w_fd) = change of q̈ MSE x change "
               f"of A_{h_last}: " + "; ".join(f"{who} {_pct(fq - 1)} x {_pct(fa - 1)} = {_pct(t - 1)}"

@@ -52,12 +52,14 @@ PAPER_NORM_KEY = "w_fd+w_ms (paper's normalisation)"   # trained only where the 
 FD_VARIANTS = (("inverse", 0.0, 0.0, "ExoLaN (inverse loss only)"), ("w_fd", None, 0.0, "ExoLaN (w_fd)"),
                ("w_fd+w_ms", None, None, "ExoLaN (w_fd, w_ms)"), (PAPER_NORM_KEY, None, None, "ExoLaN (w_fd, w_ms)"))
 
-
-def horizon_key(h: int) -> str:
-    """The forward-dynamics key of the w_fd+w_ms runs with a rollout horizon H other than the paper's 4."""
-    return f"w_fd+w_ms (H = {h})"
 FD_COLS = ("tau", "qdd", "q4", "qd4", "q10", "qd10", "q20", "qd20")
 FD_HEAD = ("τ [N²m²]", "q̈ [rad²/s⁴]", "q₄ [rad²]", "q̇₄ [rad²/s²]", "q₁₀", "q̇₁₀", "q₂₀", "q̇₂₀")
+
+
+def horizon_key(h: int) -> str:
+    """The forward-dynamics key of the w_fd+w_ms runs with a rollout horizon H other than the scale's first; the
+    entry holds H as `ms_horizon`."""
+    return f"w_fd+w_ms (H = {h})"
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -277,9 +279,8 @@ def _intention_claims(methods) -> list[dict]:
 
 def _fd_claims(fd) -> list[dict]:
     out = []
-    for key in [k for k in fd if k == "w_fd+w_ms" or k.startswith("w_fd+w_ms (H =")]:
-        if "w_fd" not in fd:
-            break
+    ms_keys = [k for k in fd if k == "w_fd+w_ms" or "ms_horizon" in fd[k]] if "w_fd" in fd else []
+    for key in ms_keys:
         A, B = fd[key], fd["w_fd"]
         for col, paper_rel in PAPER["fd_relative"].items():
             au = {u: d[col] for u, d in A["per_user"].items() if col in d}
