@@ -159,3 +159,24 @@ def test_model_inverse_forward_consistent_with_lim(method, lim):
     torch.testing.assert_close(tau, (H @ qdd[..., None])[..., 0] + c + g - Bfv, rtol=0, atol=1e-12)
     torch.testing.assert_close(m.forward_dynamics(q, qd, tau, z, f_v), qdd, rtol=0, atol=1e-9)
     assert (Bfv.abs().sum() > 0) == lim
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_solve_inertia_matches_a_dense_solve_with_its_gradient(n):
+    """The closed forms (1 and 2 joints) and the Cholesky path agree with `torch.linalg.solve`, values and
+    gradients, over a batch of SPD inertias."""
+    g = torch.Generator().manual_seed(n)
+    A = torch.randn(64, n, n, generator=g)
+    H = (A @ A.transpose(1, 2) + 0.1 * torch.eye(n)).requires_grad_()
+    r = torch.randn(64, n, generator=g, requires_grad=True)
+    x = delan.solve_inertia(H, r)
+    ref = torch.linalg.solve(H, r.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(x, ref, rtol=1e-9, atol=1e-10)
+    w = torch.randn(64, n, generator=g)
+    gH, gr = torch.autograd.grad((x * w).sum(), (H, r))
+    rH, rr = torch.autograd.grad((ref * w).sum(), (H, r))
+    # H is symmetric (L Lᵀ): only its gradient along symmetric perturbations is defined alike by every solver
+    E = torch.randn(64, n, n, generator=g)
+    E = E + E.transpose(1, 2)
+    torch.testing.assert_close((gH * E).sum((1, 2)), (rH * E).sum((1, 2)), rtol=1e-8, atol=1e-9)
+    torch.testing.assert_close(gr, rr, rtol=1e-8, atol=1e-9)

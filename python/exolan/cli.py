@@ -249,6 +249,9 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--paired-seeds", type=_at_least_one, default=None, metavar="N",
                    help="a rescued friction is fitted from scratch at N other seeds too, each compared with the "
                         "term-free fit of its seed (default 4: five seeds in all; at least 1: a spread needs two seeds)")
+    p.add_argument("--workers", type=_at_least_one, default=None, metavar="N", dest="fit_workers",
+                   help="independent fits (candidates, seeds) side by side on N threads, each torch at one thread; "
+                        "the same results as one at a time (default: the cores, at most 4)")
     p.add_argument("--measured-delay-limit", action="store_true",
                    help="also measure the actuation delay's detection limit by writing a known delay into the data "
                         "(in the gain's injection fit; confounded where the data hold a delay already)")

@@ -176,6 +176,8 @@ def cli_diagnose(args) -> int:
         settings["n_optima"] = args.optima
     if getattr(args, "paired_seeds", None) is not None:
         settings["n_paired"] = args.paired_seeds
+    if getattr(args, "fit_workers", None) is not None:
+        settings["workers"] = args.fit_workers
     rep = diagnose(args.data, model=args.model, out=args.out, quick=bool(getattr(args, "quick", False)), **settings)
     found = rep["findings"]
     if found:

@@ -136,34 +136,38 @@ def outdone_by_a_doubted_rival(results: list[dict], errors, compare) -> None:
 def run_nulls(ss, results: list) -> None:
     """Rule 3 for every exo-driven candidate that passes so far: the same term fitted on the exo torque taken from
     the future (at the lag where it correlates most with the residual; a lag-free gain also where the exo torque
-    copies the joint torque best), and a gain on the controller's own variation alone. The hardest null decides."""
-    flat, s = ss.flat, ss.s
-    for entry in results:
-        c = LIBRARY[entry["effect"]]
-        if "status" in entry or not (c.needs_exo and entry.get("passes_floor") and entry.get("identifiable")):
-            continue
-        j = flat.joints.index(entry["joint"])
-        lags = [leak_lag(ss.ref, flat, j)]
-        if c.lag_free:
-            # a gain has no lag of its own: its null also takes the exo torque where it copies the joint torque
-            # best (a clean world's knee "gain" beat the residual-chosen null; docs/DIAGNOSIS.md)
-            lags = sorted({lags[0], track_lag(flat, j)})
-        nulls = []
-        for null, adv, what, text in [future_null(ss.base, flat, entry, j, lag, s) for lag in lags]:
-            refit(null, adv, s)
-            gn = ss.gain(ss.errors(null, adv)[1], ss.fitted[(entry["effect"], j)][1])
-            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0), **what))
-            ss.log(f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {gci(gn)}")
-        if c.lag_free:
-            # ... and it must show in the controller's own variation (the exo torque less its copy of the joint
-            # torque): the same term on that variation alone must beat the reference beyond the refit noise (a
-            # term that soaks up model error correlated with the joint torque finds nothing there)
-            init = gated(c.screen_init(entry.get("screen", {})), entry.get("form"), c.effect, j)
-            gn, k_own = on_own_variation(ss.base, flat, j, init, ss.e_ref, ss.held, ss.w_held, s)
-            nulls.append(dict(gain=gn["gain"], ci=gn["ci"], own_variation_only=True, estimate=k_own,
-                              passes=own_variation_passes(gn, ss.sigma_r, k_own, entry["estimate"])))
-            ss.log(f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
-                   f"(k {k_own:.3g}) beats the reference by {gci(gn)}")
-        entry["nulls"] = nulls
-        entry["null_gain"] = min(nulls, key=lambda x: (x["passes"], x["ci"][0]))
-        entry["passes_null"] = all(x["passes"] for x in nulls)
+    copies the joint torque best), and a gain on the controller's own variation alone. The hardest null decides.
+    The candidates side by side (`Session.workers`)."""
+    todo = [e for e in results if "status" not in e and LIBRARY[e["effect"]].needs_exo
+            and e.get("passes_floor") and e.get("identifiable")]
+    ss.workers.map([lambda e=e: nulls_of(ss, e) for e in todo])
+
+
+def nulls_of(ss, entry: dict) -> None:
+    """`run_nulls` for one candidate: its nulls and `passes_null` on its entry."""
+    flat, s, c = ss.flat, ss.s, LIBRARY[entry["effect"]]
+    j = flat.joints.index(entry["joint"])
+    lags = [leak_lag(ss.ref, flat, j)]
+    if c.lag_free:
+        # a gain has no lag of its own: its null also takes the exo torque where it copies the joint torque
+        # best (a clean world's knee "gain" beat the residual-chosen null; docs/DIAGNOSIS.md)
+        lags = sorted({lags[0], track_lag(flat, j)})
+    nulls = []
+    for null, adv, what, text in [future_null(ss.base, flat, entry, j, lag, s) for lag in lags]:
+        refit(null, adv, s)
+        gn = ss.gain(ss.errors(null, adv)[1], ss.fitted[(entry["effect"], j)][1])
+        nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0), **what))
+        ss.log(f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {gci(gn)}")
+    if c.lag_free:
+        # ... and it must show in the controller's own variation (the exo torque less its copy of the joint
+        # torque): the same term on that variation alone must beat the reference beyond the refit noise (a
+        # term that soaks up model error correlated with the joint torque finds nothing there)
+        init = gated(c.screen_init(entry.get("screen", {})), entry.get("form"), c.effect, j)
+        gn, k_own = on_own_variation(ss.base, flat, j, init, ss.e_ref, ss.held, ss.w_held, s)
+        nulls.append(dict(gain=gn["gain"], ci=gn["ci"], own_variation_only=True, estimate=k_own,
+                          passes=own_variation_passes(gn, ss.sigma_r, k_own, entry["estimate"])))
+        ss.log(f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
+               f"(k {k_own:.3g}) beats the reference by {gci(gn)}")
+    entry["nulls"] = nulls
+    entry["null_gain"] = min(nulls, key=lambda x: (x["passes"], x["ci"][0]))
+    entry["passes_null"] = all(x["passes"] for x in nulls)

@@ -22,6 +22,7 @@ from .results import public, strip
 from .rules import paired_gain
 from .session import Session, Tools
 from .settings import Budget, Settings, heartbeat, log, step
+from .workers import Workers
 
 __all__ = ["Settings", "Tools", "load_trials", "run"]
 
@@ -99,14 +100,15 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
     return adequate
 
 
-def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str) -> dict:
+def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, workers: Workers | None = None) -> dict:
     """The refit noise σ_r: the RMS held-out difference between the reference and `n` twin refits that differ
     from it only in their minibatch order (rule 2)."""
+    def twin(k):
+        m = copy.deepcopy(base)
+        refit(m, flat, s, 2 + k)
+        return errors(m)[1]
     deltas, twin_d, floor = [], [], None
-    for k in range(n):
-        twin = copy.deepcopy(base)
-        refit(twin, flat, s, 2 + k)
-        e_twin = errors(twin)[1]
+    for k, e_twin in enumerate((workers or Workers()).map([lambda k=k: twin(k) for k in range(n)])):
         if k == 0:
             floor = paired_gain(e_ref, e_twin, s)
         deltas.append(float((e_ref - e_twin).mean()))
@@ -120,6 +122,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     """The whole procedure; returns the result dict (JSON-ready parts plus objects for the report). `tools`: the
     learned path's fits and judgements (`session.Tools`; tests pass stubs)."""
     s, tools = settings or Settings(), tools or Tools()
+    workers = Workers(s.workers)
     torch.manual_seed(s.seed)
     trials = trials_loaded if trials_loaded is not None else load_trials(data)
     flat = prepare(trials, max_delay=s.max_delay, seed=s.seed)
@@ -146,7 +149,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     ss = Session(flat=flat, s=s, tools=tools, held=held, w_held=w_held, scale=scale, base=base, base_start=base_start,
                  ref=ref, e_ref_user=None, e_ref=None, sigma_r=float("nan"), twin_d=[], joint_ids=joint_ids,
                  budget=Budget(s.alpha, sum(1 for eff in s.effects for _ in joint_ids
-                                            if flat.has_exo or not LIBRARY[eff].needs_exo)))
+                                            if flat.has_exo or not LIBRARY[eff].needs_exo)), workers=workers)
     ss.e_ref_user, ss.e_ref = ss.errors(ref)
     adequate = physics_first(flat, s, ref, joint_ids, phys, tools.adequacy) if phys is not None else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
@@ -155,7 +158,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     phys_joints = [j for j in joint_ids if adequate and adequate["paths"][flat.joints[j]] == "physics first"]
     learned_joints = [j for j in joint_ids if j not in phys_joints]
     # the physics path decides nothing on the refit noise: one twin measures it for the report
-    noise = refit_noise(base, flat, s, ss.e_ref, ss.errors, max(int(s.n_twins), 1) if learned_joints else 1, scale)
+    noise = refit_noise(base, flat, s, ss.e_ref, ss.errors, max(int(s.n_twins), 1) if learned_joints else 1, scale,
+                        workers)
     ss.sigma_r, ss.twin_d = noise["sigma"], noise.pop("twin_d")
     log(s, f"reference held-out MSE {ss.e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r "
            f"{ss.sigma_r:.3g} ({scale}, {len(noise['twin_differences'])} twin refits)")
@@ -179,7 +183,7 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
     ss.held_subject = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[ss.held].numpy()])
     ss.subjects = sorted({m["subject"] for m in flat.trial_meta})
     ss.cache = FitCache(flat, s, ss.base_start, ss.errors, (ss.e_ref_user, ss.e_ref), fit=ss.tools.fresh_fit,
-                        confused=ss.tools.inertia_confused, scale=ss.scale)
+                        confused=ss.tools.inertia_confused, scale=ss.scale, workers=ss.workers)
     starts = R.rollout_starts(flat, s.horizon, seed=s.seed)
     baseline, ro_base = metrics(ss.ref, flat, s, starts)
     baseline.update(source=base_source, noise_floor=noise)

@@ -16,6 +16,7 @@ from .export import extend
 from .fit import sq_errors, train
 from .flat import Flat
 from .settings import Settings, heartbeat, log
+from .workers import Workers
 
 
 def held_errors(model, flat: Flat, held: torch.Tensor, w_held: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +120,7 @@ def other_seeds(s: Settings, n: int | None = None) -> list[Settings]:
 
 
 def optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: bool,
-                  seeds: list[Settings] | None = None, fit=None) -> list[ExtendedModel]:
+                  seeds: list[Settings] | None = None, fit=None, workers: Workers | None = None) -> list[ExtendedModel]:
     """The term-free base fitted from scratch (`fresh_fit`, recipe `confused`) at `Settings.n_optima` other
     minibatch seeds (or at the settings `seeds`): the optima that a fit from scratch lands in by chance.
 
@@ -130,7 +131,8 @@ def optimum_twins(flat: Flat, s: Settings, start: torch.nn.Module, confused: boo
     docs/DIAGNOSIS.md, "Measurements behind the code"). Their differences to the
     base judged against are the `twins` of `confirm` for every comparison of a fit from scratch with it."""
     fit = fresh_fit if fit is None else fit
-    return [fit(flat, sk, (), {}, start, confused=confused) for sk in (seeds or other_seeds(s))]
+    return (workers or Workers()).map([lambda sk=sk: fit(flat, sk, (), {}, start, confused=confused)
+                                       for sk in (seeds or other_seeds(s))])
 
 
 def refit_terms_frozen(m: ExtendedModel, flat: Flat, s: Settings, seed_offset: int, trainer=train) -> None:
@@ -175,8 +177,9 @@ class FitCache:
     errors; `ref_errors` the reference's, which is the term-free fit of the reference's own recipe."""
 
     def __init__(self, flat: Flat, s: Settings, start, errors, ref_errors: tuple, fit=None,
-                 confused: tuple = INERTIA_CONFUSED, scale: str = ""):
+                 confused: tuple = INERTIA_CONFUSED, scale: str = "", workers: Workers | None = None):
         self.flat, self.s, self.start, self.errors, self.ref_errors = flat, s, start, errors, ref_errors
+        self.workers = workers or Workers()
         self.fit = fresh_fit if fit is None else fit
         self.confused, self.scale = confused, scale
         self.fresh_fits: dict = {}      # (terms, recipe) -> model
@@ -191,9 +194,8 @@ class FitCache:
         """The terms `key` fitted from scratch (once) with the recipe of the terms `recipe` (default: `key`'s
         own): a model and the one it is judged against share the recipe and differ by their terms alone."""
         conf = self.recipe(key if recipe is None else recipe)
-        if (key, conf) not in self.fresh_fits:
-            self.fresh_fits[(key, conf)] = self.fit(self.flat, self.s, key, init, self.start, confused=conf)
-        return self.fresh_fits[(key, conf)]
+        return self.workers.once(self.fresh_fits, (key, conf),
+                                 lambda: self.fit(self.flat, self.s, key, init, self.start, confused=conf))
 
     def put(self, key: tuple, model: ExtendedModel) -> None:
         """A fit from scratch of `key` with its own recipe made elsewhere (a subject form's), kept for reuse."""
@@ -205,39 +207,52 @@ class FitCache:
         decision) held-out errors, and the noise between optima: the per-sample held-out differences between
         that base and the same fitted at `Settings.n_optima` other minibatch seeds (`optimum_twins`)."""
         conf = self.recipe(key)
-        if conf not in self.optimum:
-            t1 = time.time()
-            u_0, e_0 = self.ref_errors if not conf else self.errors(self.fresh((), {}, recipe=key))
-            others = [self.errors(m) for m in optimum_twins(self.flat, self.s, self.start, conf, fit=self.fit)]
-            twins = [e_0 - e_k for _, e_k in others]
-            self.optimum[conf] = (u_0, e_0, twins, others)
-            log(self.s, "noise between optima: the term-free base fitted from scratch at other minibatch seeds"
-                        f"{' (the delay recipe)' if conf else ''} differs from the one judged against by "
-                        + ", ".join(f"{d.mean():.3g}" for d in twins)
-                        + f" ({self.scale}, mean held-out difference; {time.time() - t1:.0f} s)")
-        return self.optimum[conf][:3]
+        return self.workers.once(self.optimum, conf, lambda: self._optima(key, conf))[:3]
+
+    def _optima(self, key: tuple, conf: bool) -> tuple:
+        t1 = time.time()
+        if conf:      # the base judged against and its twins side by side
+            base, *twins_m = self.workers.map(
+                [lambda: self.fresh((), {}, recipe=key)] + [
+                    lambda sk=sk: self.fit(self.flat, sk, (), {}, self.start, confused=conf) for sk in other_seeds(self.s)])
+            u_0, e_0 = self.errors(base)
+        else:
+            u_0, e_0 = self.ref_errors
+            twins_m = optimum_twins(self.flat, self.s, self.start, conf, fit=self.fit, workers=self.workers)
+        others = [self.errors(m) for m in twins_m]
+        twins = [e_0 - e_k for _, e_k in others]
+        log(self.s, "noise between optima: the term-free base fitted from scratch at other minibatch seeds"
+                    f"{' (the delay recipe)' if conf else ''} differs from the one judged against by "
+                    + ", ".join(f"{d.mean():.3g}" for d in twins)
+                    + f" ({self.scale}, mean held-out difference; {time.time() - t1:.0f} s)")
+        return u_0, e_0, twins, others
 
     def free_at_seeds(self, key: tuple, seeds: list[Settings]) -> list[tuple]:
         """The term-free base's (user, decision) errors at `seeds` (the optimum twins' first, fitted further
         where the second look asks for more seeds, once per recipe), in the order of `other_seeds`."""
         self.optima(key)
         conf = self.recipe(key)
+        with self.workers.hold(("term-free fits", conf)):     # grown in place: a second caller finds it grown
+            return self._grow(conf, seeds)
+
+    def _grow(self, conf: bool, seeds: list[Settings]) -> list[tuple]:
         others = self.optimum[conf][3]
         if len(others) < len(seeds):
             t1, n_more = time.time(), len(seeds) - len(others)
             others += [self.errors(m) for m in optimum_twins(self.flat, self.s, self.start, conf,
-                                                             seeds[len(others):], fit=self.fit)]
+                                                             seeds[len(others):], fit=self.fit, workers=self.workers)]
             log(self.s, f"the term-free base fitted from scratch at {n_more} more seeds for the paired "
                         f"comparison ({time.time() - t1:.0f} s)")
-        return others
+        return others[:len(seeds)]
 
     def at_seeds(self, key: tuple, init: dict, conf: bool) -> list:
         """The terms `key` fitted from scratch with the recipe `conf` at the second look's other seeds
         (`other_seeds(s, s.n_paired)`, in that order), once."""
-        if (key, conf) not in self.seed_fits:
+        def make():
             t1 = time.time()
-            self.seed_fits[(key, conf)] = [self.fit(self.flat, sk, key, init, self.start, confused=conf)
-                                           for sk in other_seeds(self.s, self.s.n_paired)]
+            fits = self.workers.map([lambda sk=sk: self.fit(self.flat, sk, key, init, self.start, confused=conf)
+                                     for sk in other_seeds(self.s, self.s.n_paired)])
             log(self.s, f"{[f'{a}:{self.flat.joints[b]}' for a, b in key]} fitted from scratch at "
                         f"{self.s.n_paired} more seeds for the paired comparison ({time.time() - t1:.0f} s)")
-        return self.seed_fits[(key, conf)]
+            return fits
+        return self.workers.once(self.seed_fits, (key, conf), make)

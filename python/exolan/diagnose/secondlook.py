@@ -94,12 +94,14 @@ def second_look(ss, key: tuple, init: dict, first, first_errors: tuple, level: f
     conf = ss.cache.recipe(key)
     if given:
         u_0, e_0 = given_errors
-        others = [ss.errors(m) for m in ss.cache.at_seeds(given, init, conf)]
+        without = lambda: [ss.errors(m) for m in ss.cache.at_seeds(given, init, conf)]    # noqa: E731
     else:
         u_0, e_0, _ = ss.cache.optima(key)
-        others = ss.cache.free_at_seeds(key, other_seeds(ss.s, ss.s.n_paired))
+        without = lambda: ss.cache.free_at_seeds(key, other_seeds(ss.s, ss.s.n_paired))  # noqa: E731
+    # the fits with and without the judged terms side by side (`Session.workers`)
+    others, with_terms = ss.workers.map([without, lambda: ss.cache.at_seeds(key, init, conf)])
     pairs, users, models = [(e_0, e_f)], [(u_0, u_f)], [first]
-    for m_k, (u_k, e_k) in zip(ss.cache.at_seeds(key, init, conf), others, strict=True):
+    for m_k, (u_k, e_k) in zip(with_terms, others, strict=True):
         u_t, e_t = ss.errors(m_k)
         pairs.append((e_k, e_t))
         users.append((u_k, u_t))

@@ -13,6 +13,7 @@ from . import inference, physics_path, refits, rules, secondlook, subjects
 from .candidates import LIBRARY
 from .flat import Flat
 from .settings import Budget, Settings, log
+from .workers import Workers
 
 
 @dataclass
@@ -58,6 +59,7 @@ class Session:
     cache: refits.FitCache = None
     fitted: dict = field(default_factory=dict)      # (effect, j) -> (model that stands for it, decision errors)
     warm_fits: dict = field(default_factory=dict)   # sorted terms -> the reference refitted warm with them
+    workers: Workers = field(default_factory=Workers)  # independent fits side by side (one per candidate, per seed)
 
     @property
     def n_candidates(self) -> int:

@@ -1,6 +1,7 @@
 """The diagnosis' settings (one frozen record), its significance budget and its progress lines."""
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
@@ -41,9 +42,12 @@ class Settings:
     alpha: float = 0.05         # THE family-wise level of every accept decision, both paths (`Budget`)
     cutoff_hz: float = 25.0     # zero-phase low-pass of q and τ for the parametric identification (`ident`)
     verbose: bool = True
+    workers: int = min(4, os.cpu_count() or 1)  # independent fits side by side on threads (`workers`; same bits)
 
     def __post_init__(self):
         # the noise between optima needs a twin, and a paired comparison a second seed to measure its spread
+        if int(self.workers) < 1:
+            raise ValueError(f"Settings.workers must be at least 1, got {self.workers}")
         for name in ("n_optima", "n_paired"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"Settings.{name} must be at least 1, got {getattr(self, name)}")

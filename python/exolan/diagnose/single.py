@@ -25,8 +25,9 @@ def looks(ss, effect: str) -> int:
 
 
 def fit_candidates(ss) -> list:
-    """Every (effect, joint) the data can test: screened, and where the screen passes refitted and judged."""
-    results = []
+    """Every (effect, joint) the data can test: screened, and where the screen passes refitted and judged, the
+    candidates side by side (`Session.workers`: each decision reads only the reference's, so the order is free)."""
+    results, tasks = [], []
     for effect in ss.s.effects:
         c = LIBRARY[effect]
         for j in ss.joint_ids:
@@ -44,7 +45,8 @@ def fit_candidates(ss) -> list:
                              heldout_gain_ci=sc["ci"])
                 ss.log(f"{effect:18s} {ss.flat.joints[j]:9s} screen gain {gci(sc)}: {sc['reason']}")
                 continue
-            fit_candidate(ss, entry, effect, j, sc)
+            tasks.append(lambda entry=entry, effect=effect, j=j, sc=sc: fit_candidate(ss, entry, effect, j, sc))
+    ss.workers.map(tasks)
     return results
 
 

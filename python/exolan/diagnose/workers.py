@@ -1,0 +1,127 @@
+"""Independent fits side by side: a few threads shared by the whole run, nested calls included.
+
+Why threads: every fit runs torch at one intra-op thread with its own seeded minibatch generator, and torch
+releases the GIL inside its kernels, so two fits on two threads keep two cores busy and give the same bits as
+one after the other (measured: two fits from scratch of the 4-user world, 1.82x, identical weights;
+docs/DIAGNOSIS.md, "Time"). Why not a `concurrent.futures` pool: a candidate's task asks for further fits (its
+second look's seeds) from inside a worker, and a fixed pool whose workers wait on their own sub-tasks deadlocks.
+Here the caller always works through its own list, and takes a free slot for a helper thread where one is
+left, so the run never holds more than `n` threads busy and a nested call cannot wait on itself."""
+from __future__ import annotations
+
+import threading
+from typing import Callable, Sequence
+
+
+class Workers:
+    """At most `n` threads fitting at once: `map` runs zero-argument callables and returns their results in order;
+    `once` makes a keyed result once when several threads ask for it. A thread holds one of the `n` permits while
+    it works and gives it back while it waits (for a result another thread is making, or for its helpers), so a
+    waiting thread never keeps a core idle that a nested call could use."""
+
+    def __init__(self, n: int = 1):
+        self.n = max(int(n), 1)
+        self._permits = threading.Semaphore(self.n)
+        self._held = threading.local()
+        self._guard = threading.Lock()
+        self._locks: dict = {}
+
+    def _holds(self) -> bool:
+        return getattr(self._held, "permit", False)
+
+    def _take(self, blocking: bool = True) -> bool:
+        ok = self._permits.acquire(blocking=blocking)
+        if ok:
+            self._held.permit = True
+        return ok
+
+    def _give(self) -> None:
+        self._held.permit = False
+        self._permits.release()
+
+    def _wait(self, block: Callable) -> None:
+        """Run `block()` (a wait) without holding a permit, then take one again."""
+        held = self._holds()
+        if held:
+            self._give()
+        try:
+            block()
+        finally:
+            if held:
+                self._take()
+
+    def map(self, fns: Sequence[Callable]) -> list:
+        fns = list(fns)
+        out, todo, failed = [None] * len(fns), list(range(len(fns))), []
+        lock, helpers = threading.Lock(), []
+        entered = not self._holds()          # a caller from outside takes a permit for the call
+        if entered:
+            self._take()
+
+        def take():
+            with lock:
+                return None if (failed or not todo) else todo.pop(0)
+
+        def drain():
+            while (i := take()) is not None:
+                recruit()
+                try:
+                    out[i] = fns[i]()
+                except BaseException as exc:       # re-raised in the caller, the other results dropped
+                    failed.append(exc)
+
+        def helper():
+            try:
+                drain()
+            finally:
+                self._give()
+
+        def recruit():
+            # a helper for the work left beyond the one this thread takes next, while permits are free
+            with lock:
+                t = None
+                if len(todo) > len(helpers) and self._permits.acquire(blocking=False):
+                    t = threading.Thread(target=lambda: (setattr(self._held, "permit", True), helper()), daemon=True)
+                    helpers.append(t)
+            if t is not None:
+                t.start()
+
+        try:
+            drain()
+            for t in list(helpers):
+                self._wait(t.join)
+        finally:
+            if entered:
+                self._give()
+        if failed:
+            raise failed[0]
+        return out
+
+    def lock(self, key) -> threading.RLock:
+        """The one (re-entrant) lock of `key`, for a result that several threads may build on."""
+        with self._guard:
+            return self._locks.setdefault(key, threading.RLock())
+
+    def hold(self, key):
+        """`with workers.hold(key):` the key's lock, its permit given back while the lock is busy elsewhere."""
+        return _Held(self, self.lock(key))
+
+    def once(self, store: dict, key, make: Callable):
+        """store[key], made by `make()` by the first thread that asks; the others wait for it."""
+        with self.hold((id(store), key)):
+            if key not in store:
+                store[key] = make()
+            return store[key]
+
+
+class _Held:
+    def __init__(self, workers: Workers, lk):
+        self.workers, self.lk = workers, lk
+
+    def __enter__(self):
+        if not self.lk.acquire(blocking=False):
+            self.workers._wait(self.lk.acquire)
+        return self
+
+    def __exit__(self, *exc):
+        self.lk.release()
