@@ -31,6 +31,7 @@ def pytest_configure(config):
     # before any test module imports torch's users; subprocesses (the CLI tests) inherit OMP_NUM_THREADS
     n = threads_per_worker()
     os.environ["OMP_NUM_THREADS"] = str(n)
+    os.environ["EXOLAN_FIT_WORKERS"] = str(n)     # the diagnosis' fits side by side: the same share of the cores
     import torch
 
     torch.set_num_threads(n)

@@ -3,9 +3,16 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .candidates import FITTED
+
+
+def default_workers() -> int:
+    """Threads for independent fits: `EXOLAN_FIT_WORKERS`, else the cores, at most 4 (torch's kernels release
+    the GIL, the Python between them does not: beyond a few threads they wait on each other)."""
+    env = os.environ.get("EXOLAN_FIT_WORKERS", "")
+    return max(1, int(env)) if env.strip() else max(1, min(4, os.cpu_count() or 1))
 
 
 @dataclass(frozen=True)
@@ -42,7 +49,7 @@ class Settings:
     alpha: float = 0.05         # THE family-wise level of every accept decision, both paths (`Budget`)
     cutoff_hz: float = 25.0     # zero-phase low-pass of q and τ for the parametric identification (`ident`)
     verbose: bool = True
-    workers: int = min(4, os.cpu_count() or 1)  # independent fits side by side on threads (`workers`; same bits)
+    workers: int = field(default_factory=lambda: default_workers())  # fits side by side (`workers`; same bits)
 
     def __post_init__(self):
         # the noise between optima needs a twin, and a paired comparison a second seed to measure its spread
