@@ -76,6 +76,10 @@ class Flat:
             m &= self.held
         return torch.nonzero(m, as_tuple=False)[:, 0]
 
+    def subjects_of(self, idx: torch.Tensor) -> np.ndarray:
+        """The subject of each row idx (its trial's)."""
+        return np.array([self.trial_meta[i]["subject"] for i in self.trial[idx].numpy()])
+
     def exo_hist(self, idx: torch.Tensor):
         """(B, K+1, n) histories of τ_e, τ̇_e, τ̈_e for the rows idx."""
         lg = self.lag[idx]

@@ -108,7 +108,7 @@ def param_by_subject(model: ExtendedModel, flat: Flat, effect: str, j: int, user
     subject's training rows (as `param_ci`, conditional on the networks and the other subjects' sizes),
     in vocabulary units (strap: k)."""
     tr = flat.index("train")
-    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[tr].numpy()])
+    subj = flat.subjects_of(tr)
     out = {}
     for u in users:
         idx = tr[torch.as_tensor(subj == u)]

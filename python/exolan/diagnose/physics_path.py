@@ -85,7 +85,7 @@ def evidence(phys: physics.PhysicsResult, flat, s, key: tuple) -> dict:
         return {}
     held = flat.index("held")
     groups, kind = sample_groups(flat, held)
-    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[held].numpy()])
+    subj = flat.subjects_of(held)
     ok = np.isfinite(d)
     inv = dict(by=kind, groups={str(g): float(d[ok & (groups == g)].mean()) for g in np.unique(groups[ok])},
                scale="parametric base, unweighted",

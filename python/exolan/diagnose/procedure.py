@@ -180,7 +180,7 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
     """Steps 2-7 on the learned base (`session.Session` holds what they share)."""
     flat, s = ss.flat, ss.s
     ss.groups, ss.group_kind = sample_groups(flat, ss.held)
-    ss.held_subject = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[ss.held].numpy()])
+    ss.held_subject = flat.subjects_of(ss.held)
     ss.subjects = sorted({m["subject"] for m in flat.trial_meta})
     ss.cache = FitCache(flat, s, ss.base_start, ss.errors, (ss.e_ref_user, ss.e_ref), fit=ss.tools.fresh_fit,
                         confused=ss.tools.inertia_confused, scale=ss.scale, workers=ss.workers)

@@ -187,7 +187,7 @@ def _evidence_lines(f: dict) -> list[str]:
         adv = sf.get("advantage_over_shared") or {}
         over = sf.get("advantage_over_switch")
         by = f.get("estimate_by_subject") or {}
-        out.append(f"  - every subject at their own size (θ_u = θ e^(a_u), θ the subjects' geometric mean): "
+        out.append("  - every subject at their own size (θ_u = θ e^(a_u), θ the subjects' geometric mean): "
                    + ", ".join(f"{u} {_fmt(v['estimate'])} CI {_fmt(v['ci'], 3)}" for u, v in by.items())
                    + " (HAC on each subject's training rows, conditional on the networks: narrower than the shared "
                    "estimate's interval, which adds the spread to the warm start); post-hoc θ by subject on the "

@@ -39,7 +39,7 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
     if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
         return None     # one subject, or recordings named after their files (layout 2 without a subject column)
     tr = flat.index("train")
-    subj = np.array([flat.trial_meta[i]["subject"] for i in flat.trial[tr].numpy()])
+    subj = flat.subjects_of(tr)
     rows = []                   # each subject's training rows, in time order (at most 20000 per subject)
     for u in users:
         idx = tr[torch.as_tensor(subj == u)]
