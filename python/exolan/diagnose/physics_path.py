@@ -18,7 +18,7 @@ from ..runio import jsonable
 from . import physics, rules, stats
 from .candidates import LIBRARY, blank_entry
 from .export import extend
-from .fit import predict
+from .fit import predict, sq_errors
 from .flat import sample_groups
 
 RULE = ("Physics first: every candidate term was fitted jointly with a parametric rigid-body base (inertia, "
@@ -40,7 +40,7 @@ def adequacy(e_param: dict[int, np.ndarray], ref, flat, joint_ids, n_boot: int, 
     reference misses an effect can carry the comparison for another where the parametric base misfits
     (docs/DIAGNOSIS.md, seed 684). `adequate`: in every joint's equation."""
     held = flat.index("held")
-    e = ((predict(ref, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
+    e = sq_errors(ref, flat, held)
     joints, ok_all, tot_p, tot_l = {}, True, 0.0, 0.0
     for j in joint_ids:
         ok = np.isfinite(e_param[j]) & np.isfinite(e[:, j])
@@ -253,8 +253,7 @@ def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, l
     log(f"extended model: the learned base with {', '.join(f'{a}:{flat.joints[j]}' for a, j in accepted)} held at "
         f"their physical sizes, its networks refitted")
     ext_model = extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
-    e_ref = ((predict(ref, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
-    e_ext = ((predict(ext_model, flat, held) - flat.tau[held]) / flat.mass[held, None]).double().numpy() ** 2
+    e_ref, e_ext = sq_errors(ref, flat, held), sq_errors(ext_model, flat, held)
     g = _gain(e_ref.sum(1), e_ext.sum(1), s)
     extended, ro_ext = _metrics(ext_model, flat, s, starts)
     extended.update(terms=[f"{a}:{flat.joints[j]}" for a, j in accepted],
