@@ -7,6 +7,7 @@ samples at 1 kHz. Its friction law is sharper near rest than the model's tanh(q�
 at random around those of a published drive (seed in the message), so the test cannot be tuned to one draw.
 """
 import json
+import math
 import os
 import subprocess
 import sys
@@ -179,3 +180,17 @@ def test_a_physics_first_finding_reports_which_tasks_and_subjects_carry_it():
     assert inv["by"] == "task" and set(inv["groups"]) == {"slow", "fast"}, msg
     assert all(v > 0 for v in inv["groups"].values()), msg          # a real friction helps in both
     assert set(e["subject_gains"]) == {"S1", "S2"} and all(v["gain"] > 0 for v in e["subject_gains"].values()), msg
+
+
+def test_an_interval_through_the_reported_parameters_pole_reaches_infinity():
+    """θ's interval mapped to the reported parameter: a torque gain k = 1/(1 − θ) whose θ-interval holds 1, or a
+    strap stiffness 1/c whose compliance interval holds 0, is unbounded on the domain's side (k > 0); sorting the
+    two mapped ends instead gave a finite interval that did not hold the estimate (a knee 'gain' of 75.7 reported
+    with [−5.6, 4.9] in a strap world, accepted by physics first)."""
+    from exolan.diagnose import ident, physics
+    gain, strap = ident.TERMS["torque_gain"], ident.TERMS["strap_compliance"]
+    lo, hi = physics.report_interval(gain, 0.794, 1.179, None)
+    assert lo == pytest.approx(1 / (1 - 0.794)) and hi == math.inf
+    assert physics.report_interval(gain, 0.2, 0.6, None) == pytest.approx([1.25, 2.5])
+    assert physics.report_interval(strap, -0.001, 0.01, None) == [pytest.approx(100.0), math.inf]
+    assert physics.report_interval(strap, 0.005, 0.01, None) == pytest.approx([100.0, 200.0])

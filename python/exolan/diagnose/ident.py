@@ -205,6 +205,7 @@ class Term:
     dcol: object = None             # (sig, j, nu) -> ∂column/∂ν (fixed terms: their linearisation)
     report: object = None           # (θ, ν) -> reported parameter
     sided: str = "greater"          # the test of θ against its neutral value: greater | two-sided
+    pole: float | None = None       # θ where the reported parameter goes to infinity (a monotone map on each side)
 
     def value(self, theta, nu):
         return self.report(theta, nu) if self.report is not None else theta
@@ -259,10 +260,10 @@ TERMS: dict[str, Term] = {t.effect: t for t in [
     Term("coulomb_friction", _coulomb),
     Term("stribeck_friction", _stribeck, grid=_stribeck_grid),
     Term("torque_gain", lambda sig, j, nu, ctx: sig.tau_e[:, j], report=lambda th, nu: 1.0 / (1.0 - th),
-         sided="two-sided"),
+         sided="two-sided", pole=1.0),
     Term("actuation_delay", _delay_col, grid=_delay_grid, fixed=True,
          dcol=lambda sig, j, nu: _delayed(sig.tau_e_d[:, j], sig, nu)),
-    Term("strap_compliance", _strap_col, report=lambda th, nu: 1.0 / th if th > 0 else math.inf),
+    Term("strap_compliance", _strap_col, report=lambda th, nu: 1.0 / th if th > 0 else math.inf, pole=0.0),
 ]}
 
 

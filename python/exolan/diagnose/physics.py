@@ -97,14 +97,27 @@ def _estimate(prob: ident.JointProblem, f: ident.Fit, eff: str, joint: str) -> T
     if t.fixed:
         est, ci = th, [max(lo, 0.0), hi]
     else:
-        ends = sorted([t.value(lo, f.nu.get(eff)), t.value(hi, f.nu.get(eff))])
         est = t.value(th, f.nu.get(eff))
-        if eff == "strap_compliance":        # k = 1/c: an interval of c reaching 0 reaches k = ∞
-            ends = [1.0 / hi if hi > 0 else math.inf, 1.0 / lo if lo > 0 else math.inf]
-        ci = ends
+        ci = report_interval(t, lo, hi, f.nu.get(eff))
     nu = f.nu.get(eff)
     return TermEstimate(eff, joint, float(est), [float(ci[0]), float(ci[1])], float(th), float(se),
                         ident.p_value(eff, th if not t.fixed else th, se), None if nu is None or t.fixed else float(nu))
+
+
+def report_interval(t: ident.Term, lo: float, hi: float, nu) -> list[float]:
+    """θ's interval [lo, hi] in the reported parameter. Where it holds the map's pole (θ at which the reported
+    value is infinite: a gain k = 1/(1 − θ) at θ = 1, a stiffness 1/c at c = 0), the reported interval reaches
+    infinity: its image is two rays, and the one on the estimate's side is unbounded (the data cannot bound the
+    size). Not the two ends sorted, which would give a finite interval that does not even hold the estimate."""
+    ends = [t.value(lo, nu), t.value(hi, nu)]
+    if t.pole is not None and lo <= t.pole <= hi:
+        inside = [v for v in ends if math.isfinite(v) and v > 0]       # the ray in the domain (k > 0)
+        return [float(min(inside)), math.inf] if inside else [-math.inf, math.inf]
+    return sorted(ends)
+
+
+def _ci_text(ci) -> str:
+    return f"[{ci[0]:.4g}, {ci[1]:.4g}]"
 
 
 def _p(prob: ident.JointProblem, f: ident.Fit, eff: str) -> float:
@@ -222,6 +235,10 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
         pool.remove((e, j))
         if LIBRARY[e].outside_domain(te.ci):
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but " + _outside_domain_text(e, te, ""))
+            continue
+        if not all(math.isfinite(v) for v in te.ci):        # rule 4 of both paths: a size the data bound
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but its size is not identified: the "
+                                              f"interval {_ci_text(te.ci)} reaches infinity")
             continue
         if gain["ci"][0] <= 0:
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
