@@ -12,22 +12,31 @@ from exolan.diagnose.synthetic import linear_drive
 from exolan.diagnose.workers import Workers
 
 
+class Busy:
+    """Counts jobs running at once and the most seen (`peak`)."""
+    def __init__(self):
+        self.lock, self.now, self.peak = threading.Lock(), 0, 0
+
+    def run(self, seconds: float) -> None:
+        with self.lock:
+            self.now += 1
+            self.peak = max(self.peak, self.now)
+        time.sleep(seconds)
+        with self.lock:
+            self.now -= 1
+
+
 def test_map_keeps_the_order_and_never_runs_more_than_n_at_once():
-    w, busy, peak, lock = Workers(2), [0], [0], threading.Lock()
+    w, busy = Workers(2), Busy()
 
     def job(i):
-        with lock:
-            busy[0] += 1
-            peak[0] = max(peak[0], busy[0])
-        time.sleep(0.02)
-        with lock:
-            busy[0] -= 1
+        busy.run(0.02)
         return i * i
 
     # nested: each outer job maps inner jobs; a fixed pool waiting on its own sub-tasks would deadlock here
     out = w.map([lambda k=k: (job(k), w.map([lambda i=i: job(10 * k + i) for i in range(3)])) for k in range(4)])
     assert out == [(k * k, [(10 * k + i) ** 2 for i in range(3)]) for k in range(4)]
-    assert peak[0] == 2
+    assert busy.peak == 2
     assert Workers(1).map([lambda i=i: i for i in range(5)]) == list(range(5))
 
 
@@ -74,20 +83,20 @@ def test_fits_side_by_side_give_the_same_diagnosis_as_one_at_a_time(tmp_path):
 def test_a_thread_waiting_for_a_result_lends_its_permit_to_the_thread_making_it():
     """Two jobs need the same result: one makes it with a nested map of two parts, the other waits. The waiting
     thread's permit goes to the maker's nested map, so its two parts run side by side (not one after the other)."""
-    w, store, lock, busy, peak = Workers(2), {}, threading.Lock(), [0], [0]
+    class Observed(Workers):
+        waiting = threading.Event()
 
-    def part():
-        with lock:
-            busy[0] += 1
-            peak[0] = max(peak[0], busy[0])
-        time.sleep(0.1)
-        with lock:
-            busy[0] -= 1
+        def _wait(self, block):
+            def blocked():
+                self.waiting.set()          # the permit is given back by now
+                block()
+            super()._wait(blocked)
+
+    w, store, busy = Observed(2), {}, Busy()
 
     def make():
-        time.sleep(0.05)      # the other job arrives and waits meanwhile
-        w.map([part, part])
+        assert w.waiting.wait(30)           # the other job arrives and waits
+        w.map([lambda: busy.run(0.1)] * 2)
         return 1
-    t = time.perf_counter()
     assert w.map([lambda: w.once(store, "k", make)] * 2) == [1, 1]
-    assert peak[0] == 2 and time.perf_counter() - t < 0.3
+    assert busy.peak == 2
