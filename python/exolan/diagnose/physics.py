@@ -311,8 +311,8 @@ def _held_out_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
 
 def _outside_domain_text(e: str, te, where: str) -> str:
     """The status of a term whose interval lies wholly outside its physical domain (selection and joint fit alike)."""
-    return (f"outside its physical domain ({LIBRARY[e].sign}){where}: {te.estimate:.4g} [{te.ci[0]:.4g}, "
-            f"{te.ci[1]:.4g}]; the term absorbs something else")
+    return (f"outside its physical domain ({LIBRARY[e].sign}){where}: {te.estimate:.4g} {_ci_text(te.ci)}; "
+            "the term absorbs something else")
 
 
 def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:

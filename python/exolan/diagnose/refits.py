@@ -211,14 +211,11 @@ class FitCache:
 
     def _optima(self, key: tuple, conf: bool) -> tuple:
         t1 = time.time()
-        if conf:      # the base judged against and its twins side by side
-            base, *twins_m = self.workers.map(
-                [lambda: self.fresh((), {}, recipe=key)] + [
-                    lambda sk=sk: self.fit(self.flat, sk, (), {}, self.start, confused=conf) for sk in other_seeds(self.s)])
-            u_0, e_0 = self.errors(base)
-        else:
-            u_0, e_0 = self.ref_errors
-            twins_m = optimum_twins(self.flat, self.s, self.start, conf, fit=self.fit, workers=self.workers)
+        # the base judged against (the reference itself, or fitted with the delay's recipe) beside its twins
+        base, twins_m = self.workers.map([
+            (lambda: self.fresh((), {}, recipe=key)) if conf else (lambda: None),
+            lambda: optimum_twins(self.flat, self.s, self.start, conf, fit=self.fit, workers=self.workers)])
+        u_0, e_0 = self.errors(base) if conf else self.ref_errors
         others = [self.errors(m) for m in twins_m]
         twins = [e_0 - e_k for _, e_k in others]
         log(self.s, "noise between optima: the term-free base fitted from scratch at other minibatch seeds"

@@ -49,7 +49,7 @@ class Settings:
     alpha: float = 0.05         # THE family-wise level of every accept decision, both paths (`Budget`)
     cutoff_hz: float = 25.0     # zero-phase low-pass of q and τ for the parametric identification (`ident`)
     verbose: bool = True
-    workers: int = field(default_factory=lambda: default_workers())  # fits side by side (`workers`; same bits)
+    workers: int = field(default_factory=default_workers)  # fits side by side (`workers`; same bits)
 
     def __post_init__(self):
         # the noise between optima needs a twin, and a paired comparison a second seed to measure its spread

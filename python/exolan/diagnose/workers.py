@@ -10,6 +10,7 @@ left, so the run never holds more than `n` threads busy and a nested call cannot
 from __future__ import annotations
 
 import threading
+from contextlib import contextmanager
 from typing import Callable, Sequence
 
 
@@ -29,11 +30,9 @@ class Workers:
     def _holds(self) -> bool:
         return getattr(self._held, "permit", False)
 
-    def _take(self, blocking: bool = True) -> bool:
-        ok = self._permits.acquire(blocking=blocking)
-        if ok:
-            self._held.permit = True
-        return ok
+    def _take(self) -> None:
+        self._permits.acquire()
+        self._held.permit = True
 
     def _give(self) -> None:
         self._held.permit = False
@@ -70,7 +69,8 @@ class Workers:
                 except BaseException as exc:       # re-raised in the caller, the other results dropped
                     failed.append(exc)
 
-        def helper():
+        def helper():       # runs on a permit `recruit` took for it
+            self._held.permit = True
             try:
                 drain()
             finally:
@@ -81,7 +81,7 @@ class Workers:
             with lock:
                 t = None
                 if len(todo) > len(helpers) and self._permits.acquire(blocking=False):
-                    t = threading.Thread(target=lambda: (setattr(self._held, "permit", True), helper()), daemon=True)
+                    t = threading.Thread(target=helper, daemon=True)
                     helpers.append(t)
             if t is not None:
                 t.start()
@@ -97,14 +97,18 @@ class Workers:
             raise failed[0]
         return out
 
-    def lock(self, key) -> threading.RLock:
-        """The one (re-entrant) lock of `key`, for a result that several threads may build on."""
-        with self._guard:
-            return self._locks.setdefault(key, threading.RLock())
-
+    @contextmanager
     def hold(self, key):
-        """`with workers.hold(key):` the key's lock, its permit given back while the lock is busy elsewhere."""
-        return _Held(self, self.lock(key))
+        """`with workers.hold(key):` the one (re-entrant) lock of `key`, for a result that several threads may build
+        on; the permit is given back while another thread holds it."""
+        with self._guard:
+            lk = self._locks.setdefault(key, threading.RLock())
+        if not lk.acquire(blocking=False):
+            self._wait(lk.acquire)
+        try:
+            yield
+        finally:
+            lk.release()
 
     def once(self, store: dict, key, make: Callable):
         """store[key], made by `make()` by the first thread that asks; the others wait for it."""
@@ -113,15 +117,3 @@ class Workers:
                 store[key] = make()
             return store[key]
 
-
-class _Held:
-    def __init__(self, workers: Workers, lk):
-        self.workers, self.lk = workers, lk
-
-    def __enter__(self):
-        if not self.lk.acquire(blocking=False):
-            self.workers._wait(self.lk.acquire)
-        return self
-
-    def __exit__(self, *exc):
-        self.lk.release()
