@@ -180,10 +180,23 @@ def test_converge_plan_early_stops_every_world_run_and_trains_both_normalisation
         assert any(s.w_fd > 0 and s.w_ms == 0 for s in mine)
         assert {s.ms_horizon for s in mine if s.w_ms > 0} == {4, 20}           # the paper's H and a longer one
     assert len({s.run_id for s in specs}) == len(specs)
-    assert [s.run_id for s in specs if s.ms_horizon == 20][0].endswith("_increment_h20_p10v2_e150_b2048_s0")
+    assert [s.run_id for s in specs if s.ms_horizon == 20][0].endswith("_increment_h20n51_p10v2_e150_b2048_s0")
+    # every horizon's rollout loss costs a batch the same model evaluations: the paper's 256 starts x 4 steps
+    assert {s.ms_starts * s.ms_horizon // 4 for s in world if s.w_ms > 0} <= {255, 256}
     # the ids of the earlier scales are unchanged (finished runs of an interrupted study are reused)
     small = R.RunSpec("world", "exolan", True, 0.01, 1.0, 0, 3, 1024)
     assert small.run_id == "world/exolan_fd0.01_ms1_e3_b1024_s0"
+
+
+def test_the_real_backend_trains_a_spec_with_its_own_rollout_starts(monkeypatch, tmp_path):
+    from exolan import reproduce_job, train as tr
+
+    seen = {}
+    monkeypatch.setattr(tr, "train", lambda trials, **kw: seen.update(kw))
+    monkeypatch.setattr(tr, "load_run", lambda run_dir, device: (None, None))
+    spec = [s for s in R.plan(R.SCALES["converge"], with_real=False) if s.ms_horizon == 20][0]
+    reproduce_job.RealBackend().train(spec, [], tmp_path, "", "cpu", 1)
+    assert (seen["horizon"], seen["n_starts"], seen["ms_norm"], seen["patience"]) == (20, 51, "increment", 10)
 
 
 def test_real_split_is_disjoint_and_covers_the_three_held_out_kinds():
@@ -237,7 +250,7 @@ def test_tiny_sweep_writes_a_complete_report(tiny_serial):
     assert len(res["intention"]) == 6  # tiny: 3 architectures x with/without LIM
     assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms", "w_fd+w_ms (H = 6)"}  # tiny: H 4 and 6
     assert any(c["claim"] == "multi-step loss lowers qd20 MSE (w_fd+w_ms (H = 6) vs w_fd)" for c in res["fd_claims"])
-    assert "| **ours** ExoLaN (w_fd, w_ms, H = 6)" in md
+    assert "| **ours** ExoLaN (w_fd, w_ms, H = 6, 170 starts)" in md
     assert res["task_identification"]["sample_split"]["exolan"]["accuracy"][0] > 0
     assert any(c["claim"].startswith("ExoLaN+LIM vs TCN+LIM") for c in res["intention_claims"])
     assert set(res["real"]) == {"exolan", "mlp-tcn", "tcn"}

@@ -24,8 +24,8 @@ from .reproduce_job import JobContext, run_job
 # Scale fields that only say which runs a sweep holds: each run's own values are in its spec, so adding a run
 # to a scale (a seed, an architecture, a horizon) leaves every finished run's marker valid.
 _PLAN_ONLY = frozenset({"seeds", "architectures", "lims", "nolim_also", "fd_study", "w_fd", "w_ms", "ms_norm",
-                        "ms_horizons", "epochs", "batch_size", "patience", "val_users", "real", "real_epochs",
-                        "real_seeds", "real_batch_size"})
+                        "ms_horizons", "ms_rollout_steps", "epochs", "batch_size", "patience", "val_users", "real",
+                        "real_epochs", "real_seeds", "real_batch_size"})
 
 
 def _non_default(obj) -> dict:

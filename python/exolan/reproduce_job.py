@@ -57,7 +57,7 @@ class RealBackend:
         if spec.w_fd:
             extra["w_fd"] = spec.w_fd
         if spec.w_ms:
-            extra.update(w_ms=spec.w_ms, ms_norm=spec.ms_norm, horizon=spec.ms_horizon)
+            extra.update(w_ms=spec.w_ms, ms_norm=spec.ms_norm, horizon=spec.ms_horizon, n_starts=spec.ms_starts)
         if spec.patience:
             extra.update(patience=spec.patience, val_users=spec.val_users)
         tr.train(list(train_trials), method=spec.arch, lim=spec.lim, epochs=spec.epochs, seed=spec.seed,

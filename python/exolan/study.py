@@ -58,6 +58,9 @@ class Scale:
     w_ms: float = 1.0
     ms_norm: str = "state"           # the w_fd+w_ms run's multi-step normalisation (TrainConfig.ms_norm)
     ms_horizons: tuple[int, ...] = (4,)  # the w_fd+w_ms run's rollout horizon H (paper: 4); more = runs beside it
+    # model evaluations of the rollout loss per batch (starts x H): a longer horizon rolls out from fewer starts,
+    # so it costs an epoch what H = 4 from the paper's 256 starts costs (H = 20 from 256 took 2.7x as long)
+    ms_rollout_steps: int = 1024
     # early stopping: every run trains until its validation loss (on `val_users` training users carved out,
     # never the held-out users) has not improved for `patience` epochs, at most `epochs` (0 = fixed epochs)
     patience: int = 0
@@ -124,6 +127,7 @@ class RunSpec:
     patience: int = 0
     val_users: int = 0
     ms_horizon: int = 4
+    ms_starts: int = 256    # rollout starts per batch (TrainConfig.n_starts)
 
     @property
     def run_id(self) -> str:
@@ -132,6 +136,8 @@ class RunSpec:
         extra = "" if self.ms_norm == "state" or not self.w_ms else f"_{self.ms_norm}"
         if self.w_ms and self.ms_horizon != 4:
             extra += f"_h{self.ms_horizon}"
+        if self.w_ms and self.ms_starts != 256:
+            extra += f"n{self.ms_starts}"
         if self.patience:
             extra += f"_p{self.patience}v{self.val_users}"
         return (f"{self.dataset}/{method_name(self.arch, self.lim)}_fd{self.w_fd:g}_ms{self.w_ms:g}{extra}"
@@ -146,7 +152,8 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
     stop = dict(patience=scale.patience, val_users=scale.val_users)
     for seed in scale.seeds:
         run = lambda arch, lim, w_fd=0.0, w_ms=0.0, norm="state", h=4: RunSpec(
-            "world", arch, lim, w_fd, w_ms, seed, scale.epochs, scale.batch_size, norm, ms_horizon=h, **stop)
+            "world", arch, lim, w_fd, w_ms, seed, scale.epochs, scale.batch_size, norm, ms_horizon=h,
+            ms_starts=max(1, scale.ms_rollout_steps // h) if w_ms else 256, **stop)
         for arch in scale.architectures:
             for lim in scale.lims:
                 specs.append(run(arch, lim))

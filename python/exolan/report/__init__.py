@@ -62,8 +62,10 @@ def build(out: Path, scale: Scale, specs: list[RunSpec], results: dict[str, dict
             rr = runs_of("world", "exolan", True, scale.w_fd, scale.w_ms, scale.ms_norm, h)
             if rr:
                 key = horizon_key(h)
-                fd[key] = {"label": f"ExoLaN (w_fd, w_ms, H = {h}) [{scale.ms_norm} normalisation]",
-                           "ms_norm": scale.ms_norm, "ms_horizon": h, **fd_stats(rr, scale.horizons, meta.get("dt"))}
+                starts = rr[0].get("spec", {}).get("ms_starts")
+                fd[key] = {"label": f"ExoLaN (w_fd, w_ms, H = {h}" + (f", {starts} starts" if starts else "")
+                           + f") [{scale.ms_norm} normalisation]", "ms_norm": scale.ms_norm, "ms_horizon": h,
+                           "ms_starts": starts, **fd_stats(rr, scale.horizons, meta.get("dt"))}
                 fd_runs[key] = (fd[key]["label"], rr)
     for mode, rows in (meta.get("reference_fd_rows") or {}).items():
         fd[f"{REFERENCE_KEY}: {mode}"] = {"label": f"the world's true leg, {mode} (reference)",
