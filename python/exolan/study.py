@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .config import TrainConfig
+
 # --------------------------------------------------------------------------------------------------
 # Methods and tasks
 # --------------------------------------------------------------------------------------------------
@@ -126,17 +128,17 @@ class RunSpec:
     ms_norm: str = "state"
     patience: int = 0
     val_users: int = 0
-    ms_horizon: int = 4
-    ms_starts: int = 256    # rollout starts per batch (TrainConfig.n_starts)
+    ms_horizon: int = TrainConfig.horizon       # the paper's H and starts per batch
+    ms_starts: int = TrainConfig.n_starts
 
     @property
     def run_id(self) -> str:
         # The id is the training configuration only, so that a configuration shared by two studies
         # (ExoLaN + LIM, inverse loss only = the FD study's first row) is trained once.
         extra = "" if self.ms_norm == "state" or not self.w_ms else f"_{self.ms_norm}"
-        if self.w_ms and self.ms_horizon != 4:
+        if self.w_ms and self.ms_horizon != TrainConfig.horizon:
             extra += f"_h{self.ms_horizon}"
-        if self.w_ms and self.ms_starts != 256:
+        if self.w_ms and self.ms_starts != TrainConfig.n_starts:
             extra += f"n{self.ms_starts}"
         if self.patience:
             extra += f"_p{self.patience}v{self.val_users}"
@@ -153,7 +155,7 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
     for seed in scale.seeds:
         run = lambda arch, lim, w_fd=0.0, w_ms=0.0, norm="state", h=4: RunSpec(
             "world", arch, lim, w_fd, w_ms, seed, scale.epochs, scale.batch_size, norm, ms_horizon=h,
-            ms_starts=max(1, scale.ms_rollout_steps // h) if w_ms else 256, **stop)
+            ms_starts=max(1, scale.ms_rollout_steps // h) if w_ms else TrainConfig.n_starts, **stop)
         for arch in scale.architectures:
             for lim in scale.lims:
                 specs.append(run(arch, lim))
