@@ -82,3 +82,41 @@ def test_where_both_paths_accept_the_learned_paths_model_is_handed_over_and_the_
     assert "extended model carries the learned path's terms only" in out["report"]["findings"][1]["note"]
     assert out["report"]["physics"]["paths"] == dict(hip="learned", knee="physics first")
     assert out["report"]["physics"]["path"] == "per joint"
+
+
+def test_a_joint_that_fails_its_second_gate_leaves_the_selection_which_runs_again_without_it(arm, tmp_path):
+    """Both joints pass the gate of the saturated family, the elbow fails the gate with the accepted terms: the
+    selection runs again on the shoulder alone, so no elbow acceptance counts in the shoulder's Holm thresholds,
+    and the report shows the elbow decided by the learned path with the numbers of the gate it failed."""
+    calls, verdicts = [], iter([dict(shoulder=True, elbow=True), dict(shoulder=True, elbow=False),
+                                dict(shoulder=True)])
+
+    def gate(e_param, ref, flat, joint_ids, n_boot, what=""):
+        return _gate(next(verdicts), calls)(e_param, ref, flat, joint_ids, n_boot, what)
+
+    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+                   rescue=False, n_twins=1, verbose=False, tools=Tools(adequacy=gate))
+    assert [c[0] for c in calls] == [["shoulder", "elbow"], ["shoulder", "elbow"], ["shoulder"]]
+    ph = rep["physics"]
+    assert ph["paths"] == dict(shoulder="physics first", elbow="learned")
+    assert {t["joint"] for t in ph["tests"]} == {"shoulder"}          # the last selection's tests only
+    assert not any(a.endswith(":elbow") for a in ph["accepted"])
+    # Holm's step-down restarted: r counts the shoulder's own acceptances (thresholds α/m, α/(m − 1), ...)
+    assert [t["step"] for t in ph["tests"]] == list(range(1, len(ph["tests"]) + 1))
+    assert ph["adequacy"]["joints"]["elbow"]["adequate"] is False
+    entries = {(e["effect"], e["joint"]): e for e in rep["findings"] + rep["rejected"]}
+    assert all("screen" in entries[(e, "elbow")] for e in EFFECTS)     # decided on the learned path
+
+
+def test_where_every_joint_fails_its_second_gate_physics_first_reports_nothing(arm, tmp_path):
+    calls, verdicts = [], iter([dict(shoulder=True, elbow=True), dict(shoulder=False, elbow=False)])
+
+    def gate(e_param, ref, flat, joint_ids, n_boot, what=""):
+        return _gate(next(verdicts), calls)(e_param, ref, flat, joint_ids, n_boot, what)
+
+    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+                   rescue=False, n_twins=1, verbose=False, tools=Tools(adequacy=gate))
+    assert [c[0] for c in calls] == [["shoulder", "elbow"], ["shoulder", "elbow"]]
+    ph = rep["physics"]
+    assert ph["paths"] == dict(shoulder="learned", elbow="learned")
+    assert ph["tests"] == [] and ph["accepted"] == []

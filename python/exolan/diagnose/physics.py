@@ -173,6 +173,7 @@ def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = iden
              if flat.has_exo or not LIBRARY[e].needs_exo]
     res = PhysicsResult(alpha=alpha, family=len(cands), cutoff_hz=sig.cutoff)
     res._probs, res._fits, res._cands, res._joint_ids = probs, cur, cands, list(joint_ids)
+    res._base_fits = dict(cur)          # each selection starts from the bare bases (`select` may run again)
     res.seconds = time.time() - t0
     return res
 
@@ -209,6 +210,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     step-down at α/(m − r) bounds the family-wise level of the two together by α (`procedure.run`)."""
     t0 = time.time() - res.seconds
     log = log or (lambda msg: None)
+    reset(res)
     probs, cur, cands, joint_ids, alpha = res._probs, res._fits, res._cands, res._joint_ids, res.alpha
     pool, r = [c for c in cands if joints is None or c[1] in joints], 0
     accepted = {j: [] for j in joint_ids}
@@ -274,6 +276,15 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     res.seconds = time.time() - t0
     res._probs, res._fits = probs, cur      # for the cross-check and the extended model
     return res
+
+
+def reset(res: PhysicsResult) -> None:
+    """Forget an earlier selection: a selection rerun on fewer joints must not count the acceptances of a joint
+    it no longer decides in Holm's step-down (they would loosen every later threshold)."""
+    res.accepted, res.estimates, res.tests, res.status = [], {}, [], {}
+    res.base, res.heldout, res.cross, res.term_gain, res.term_rows = {}, {}, {}, {}, {}
+    res.e_held, res.held_rows = None, None
+    res._fits = dict(res._base_fits)
 
 
 def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, joint: str, j: int) -> ident.Fit:

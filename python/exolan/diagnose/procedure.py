@@ -86,13 +86,23 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
                  what="the parametric base with every linear candidate term")
     joints = {nm: dict(v, model=first["model"]) for nm, v in first["joints"].items()}
     passing = [j for j in joint_ids if joints[flat.joints[j]]["adequate"]]
-    if passing:
+    while passing:
+        # a joint that fails the second gate leaves to the learned path: the selection runs again without it, so
+        # its acceptances count in no other joint's Holm thresholds (the set only shrinks: at most one rerun a joint)
         physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m), joints=passing)
         log(s, phys.summary(flat.joints))
         physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), passing, log=lambda m: log(s, m))
         second = gate(phys.e_held, ref, flat, passing, n_boot=s.n_boot,
                       what="the parametric base with its accepted terms")
         joints.update({nm: dict(v, model=second["model"]) for nm, v in second["joints"].items()})
+        still = [j for j in passing if joints[flat.joints[j]]["adequate"]]
+        if still == passing:
+            break
+        log(s, f"{', '.join(flat.joints[j] for j in passing if j not in still)}: not adequate with the accepted terms; "
+               "the selection runs again on " + (", ".join(flat.joints[j] for j in still) or "no joint"))
+        passing = still
+        if not passing:             # as if no joint had passed: physics first decides and reports nothing
+            physics.reset(phys)
     adequate = physics_path.per_joint(joints, first.get("rule", ""))
     for nm, v in joints.items():
         log(s, f"{nm}: parametric base held-out MSE {v['parametric_mse']:.4g}, learned {v['learned_mse']:.4g} "
