@@ -1161,9 +1161,10 @@ def test_the_gains_screen_regresses_on_the_controllers_own_variation_that_the_ba
     (k − 1) times the controller's own variation only. Regressed on the whole exo torque (90 % copy here) the
     post-hoc θ would shrink to the own share; the screen's own-variation feature recovers it."""
     from exolan.diagnose import screen as S
+    from exolan.diagnose.flat import exo_copy
 
     flat = _assisted_pair(share=0.3, own_sd=2.0, seed=5)
-    own = flat.tau_e[:, 0] - S.exo_copy(flat, 0).tau_e[:, 0]
+    own = flat.tau_e[:, 0] - exo_copy(flat, 0).tau_e[:, 0]
     assert 0.02 < float(own.var() / flat.tau_e[:, 0].var()) < 0.2
     theta = 0.4                                              # k = 1/(1 − θ) ≈ 1.67
     eps = torch.as_tensor(np.random.default_rng(6).normal(0, 0.01, (12000, 2)), dtype=torch.float32)

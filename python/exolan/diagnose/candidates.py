@@ -17,11 +17,18 @@ tested on data without one.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 import torch
+
+from ..extensions import COULOMB_EPS
+from .fit import predict
+from .flat import exo_copy
+
+VS_GRID = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)   # rad/s (m/s): a log grid across plausible Stribeck velocities
 
 
 def _start_positive(th: float, sc: dict) -> dict:
@@ -63,6 +70,76 @@ def _inject_delay(te: torch.Tensor, th: float, lengths, dt: float) -> torch.Tens
     return te - delayed(te, lengths, th, dt)     # the limb feels the recorded torque θ seconds late
 
 
+# -- the screen's features: the change of the predicted recorded torque per unit parameter, (rows, n) on joint j
+#    (`screen`); each returns [(extra, F)], one per grid variant
+
+def _onehot(flat, j: int, v: np.ndarray) -> np.ndarray:
+    return np.eye(flat.n)[j][None, :] * v[:, None]
+
+
+def _qd(flat, idx, j: int) -> np.ndarray:
+    return flat.qd[idx, j].numpy().astype(np.float64)
+
+
+def _input_sensitivity(model, flat, idx, j: int, dq, dqd, dqdd, h: float) -> np.ndarray:
+    """(τ̂(x + h δ) − τ̂(x − h δ)) / 2h for an input shift δ = (dq, dqd, dqdd) on joint j."""
+    out = []
+    for sgn in (1.0, -1.0):
+        f = copy.copy(flat)
+        f.q = flat.q.clone(); f.qd = flat.qd.clone(); f.qdd = flat.qdd.clone()
+        f.q[idx, j] += sgn * h * dq
+        if dqd is not None:
+            f.qd[idx, j] += sgn * h * dqd
+        if dqdd is not None:
+            f.qdd[idx, j] += sgn * h * dqdd
+        out.append(predict(model, f, idx))
+    return ((out[0] - out[1]) / (2 * h)).numpy().astype(np.float64)
+
+
+def _delay_grid(flat) -> list[int]:
+    K = flat.lag.shape[1] - 1
+    return sorted({k for k in (1, 2, 3, 4, 6, 8, 10, 14, 18) if k <= K})
+
+
+def _f_viscous(model, flat, idx, j):
+    return [({}, _onehot(flat, j, _qd(flat, idx, j)))]
+
+
+def _f_coulomb(model, flat, idx, j):
+    return [({}, _onehot(flat, j, np.tanh(_qd(flat, idx, j) / COULOMB_EPS)))]
+
+
+def _f_stribeck(model, flat, idx, j):
+    qd = _qd(flat, idx, j)
+    return [({"vs": vs}, _onehot(flat, j, np.exp(-(qd / vs) ** 2) * np.tanh(qd / COULOMB_EPS))) for vs in VS_GRID]
+
+
+def _f_bias(model, flat, idx, j):
+    return [({}, _onehot(flat, j, np.ones(len(idx))))]
+
+
+def _f_gain(model, flat, idx, j):
+    te = flat.tau_e[idx, j].numpy().astype(np.float64)
+    own = te - exo_copy(flat, j).tau_e[idx, j].numpy().astype(np.float64)
+    return [({}, _onehot(flat, j, te)), ({"own_variation": True}, _onehot(flat, j, own))]
+
+
+def _f_delay(model, flat, idx, j):
+    te = flat.tau_e[:, j].numpy().astype(np.float64)
+    lag = flat.lag[idx].numpy()
+    return [({"d": k * flat.dt}, _onehot(flat, j, te[lag[:, 0]] - te[lag[:, k]])) for k in _delay_grid(flat)]
+
+
+def _f_offset(model, flat, idx, j):
+    return [({}, _input_sensitivity(model, flat, idx, j, torch.full((len(idx),), -1.0), None, None, 1e-2))]
+
+
+def _f_strap(model, flat, idx, j):
+    # parameter = compliance 1/k; the shift is −τ_e/k (and its derivatives); h in rad/(N m)
+    return [({}, _input_sensitivity(model, flat, idx, j, -flat.tau_e[idx, j], -flat.tau_e_d[idx, j],
+                                    -flat.tau_e_dd[idx, j], 1e-4))]
+
+
 @dataclass(frozen=True)
 class Candidate:
     """One effect of the vocabulary and its own behaviour in the diagnosis: how its parameter is read off a
@@ -93,6 +170,7 @@ class Candidate:
     start: Callable | None = field(default=None, compare=False, repr=False)      # (screen θ, screen) -> {value}
     theta: Callable | None = field(default=None, compare=False, repr=False)      # (model, j) -> (raw, θ())
     inject: Callable | None = field(default=None, compare=False, repr=False)     # (τ_e, θ, lengths, dt) -> Δτ_rec
+    features: Callable | None = field(default=None, compare=False, repr=False)   # (model, flat, rows, j) -> [(extra, F)]
 
     def unit(self, joint_type: str) -> str:
         return self.unit_prismatic if joint_type == "prismatic" else self.unit_revolute
@@ -151,31 +229,31 @@ class Candidate:
 LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
     Candidate("viscous_damping", "joint friction proportional to velocity: torque −b q̇ dissipates b q̇² of power",
               "b ≥ 0", "N m s/rad", "N s/m", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
-              theta=lambda m, j: (m.damping_diag, lambda: float(m.damping_matrix()[j, j]))),
+              features=_f_viscous, theta=lambda m, j: (m.damping_diag, lambda: float(m.damping_matrix()[j, j]))),
     Candidate("coulomb_friction", "dry friction of constant magnitude opposing motion: −Fc sign(q̇)",
               "Fc ≥ 0", "N m", "N", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
-              theta=lambda m, j: (m.coulomb_raw, lambda: float(m.coulomb()[j]))),
+              features=_f_coulomb, theta=lambda m, j: (m.coulomb_raw, lambda: float(m.coulomb()[j]))),
     Candidate("stribeck_friction", "static friction in excess of Coulomb that vanishes above a Stribeck velocity vs: "
               "−Fs exp(−(q̇/vs)²) sign(q̇)", "Fs ≥ 0, vs > 0", "N m", "N", "finding", 0.0, positive=True,
               shape="stribeck_vs", domain_lo=0.0, start=_start_positive,
-              theta=lambda m, j: (m.stribeck_fs_raw, lambda: float(m.stribeck()[0][j]))),
+              features=_f_stribeck, theta=lambda m, j: (m.stribeck_fs_raw, lambda: float(m.stribeck()[0][j]))),
     Candidate("actuation_delay", "the exoskeleton applies its recorded torque d seconds late: τ_e,app(t) = τ_e,rec(t−d)",
               "d ≥ 0", "s", "s", "finding", 0.0, needs_exo=True, positive=True, bounded_by_max_delay=True,
               limit_key="d_limit", domain_lo=0.0, start=_start_delay, inject=_inject_delay,
-              theta=lambda m, j: (m.delay_raw, lambda: float(m.delay()[j]))),
+              features=_f_delay, theta=lambda m, j: (m.delay_raw, lambda: float(m.delay()[j]))),
     Candidate("torque_gain", "the torque sensor reads k times the applied exoskeleton torque",
               "k > 0", "1", "1", "finding", 1.0, needs_exo=True, lag_free=True, domain_lo=0.0, start=_start_gain,
-              inject=_inject_gain, theta=lambda m, j: (m.gain_raw, lambda: float(1.0 / (1.0 - m.gain_term()[j])))),
+              inject=_inject_gain, features=_f_gain, theta=lambda m, j: (m.gain_raw, lambda: float(1.0 / (1.0 - m.gain_term()[j])))),
     Candidate("strap_compliance", "a spring of stiffness k between exoskeleton and limb: the encoder reads the limb "
               "angle plus τ_e,app / k", "k > 0", "N m/rad", "N/m", "finding", float("inf"), needs_exo=True,
               positive=True, inverse=True, domain_lo=0.0, start=_start_inverse,
-              theta=lambda m, j: (m.compliance_raw, lambda: float(m.compliance()[j]))),
+              features=_f_strap, theta=lambda m, j: (m.compliance_raw, lambda: float(m.compliance()[j]))),
     Candidate("encoder_offset", "a constant angle offset of the encoder: q_meas = q + δ", "any", "rad", "m",
               "absorbable", 0.0, start=_start_any,
-              theta=lambda m, j: (m.offset_raw, lambda: float(m.encoder_offset()[j]))),
+              features=_f_offset, theta=lambda m, j: (m.offset_raw, lambda: float(m.encoder_offset()[j]))),
     Candidate("torque_bias", "a constant offset of the recorded torque: τ_rec = τ + τ0", "any", "N m", "N",
               "absorbable", 0.0, start=_start_any,
-              theta=lambda m, j: (m.bias_raw, lambda: float(m.torque_bias()[j]))),
+              features=_f_bias, theta=lambda m, j: (m.bias_raw, lambda: float(m.torque_bias()[j]))),
     Candidate("payload", "mass added to a segment (changes inertia and gravity)", "m ≥ 0", "kg", "kg",
               "absorbable", 0.0),
     Candidate("backlash", "play of width w in the transmission: the encoder lags the limb by w/2 after a reversal",

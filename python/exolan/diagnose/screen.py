@@ -25,72 +25,21 @@ the code").
 """
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import torch
 
-from ..extensions import COULOMB_EPS
 from . import stats
 from .candidates import LIBRARY
 from .fit import predict
-from .flat import Flat, exo_copy, sample_groups
+from .flat import Flat, sample_groups
 
-VS_GRID = (0.02, 0.05, 0.1, 0.2, 0.5, 1.0)   # rad/s (m/s): a log grid across plausible Stribeck velocities
-
-
-def _delay_grid(flat: Flat) -> list[int]:
-    K = flat.lag.shape[1] - 1
-    return sorted({k for k in (1, 2, 3, 4, 6, 8, 10, 14, 18) if k <= K})
-
-
-def _input_sensitivity(model, flat: Flat, idx, j: int, dq, dqd, dqdd, h: float) -> torch.Tensor:
-    """(τ̂(x + h δ) − τ̂(x − h δ)) / 2h for an input shift δ = (dq, dqd, dqdd) on joint j."""
-    out = []
-    for sgn in (1.0, -1.0):
-        f = copy.copy(flat)
-        f.q = flat.q.clone(); f.qd = flat.qd.clone(); f.qdd = flat.qdd.clone()
-        f.q[idx, j] += sgn * h * dq
-        if dqd is not None:
-            f.qd[idx, j] += sgn * h * dqd
-        if dqdd is not None:
-            f.qdd[idx, j] += sgn * h * dqdd
-        out.append(predict(model, f, idx))
-    return (out[0] - out[1]) / (2 * h)
-
-
-def features(model, flat: Flat, idx: torch.Tensor, effect: str, j: int, train_r: np.ndarray | None = None,
-             train_idx=None) -> list[tuple[dict, np.ndarray]]:
-    """Candidate features (one or several grid variants) at rows idx: [(extra, F (len(idx), n))]."""
-    n = flat.n
-    N = len(idx)
-    qd = flat.qd[idx, j].numpy().astype(np.float64)
-    onehot = lambda v: np.eye(n)[j][None, :] * v[:, None]
-    if effect == "viscous_damping":
-        return [({}, onehot(qd))]
-    if effect == "coulomb_friction":
-        return [({}, onehot(np.tanh(qd / COULOMB_EPS)))]
-    if effect == "stribeck_friction":
-        return [({"vs": vs}, onehot(np.exp(-(qd / vs) ** 2) * np.tanh(qd / COULOMB_EPS))) for vs in VS_GRID]
-    if effect == "torque_bias":
-        return [({}, onehot(np.ones(N)))]
-    if effect == "torque_gain":
-        te = flat.tau_e[idx, j].numpy().astype(np.float64)
-        own = te - exo_copy(flat, j).tau_e[idx, j].numpy().astype(np.float64)
-        return [({}, onehot(te)), ({"own_variation": True}, onehot(own))]
-    if effect == "actuation_delay":
-        te = flat.tau_e[:, j].numpy().astype(np.float64)
-        lag = flat.lag[idx].numpy()
-        return [({"d": k * flat.dt}, onehot(te[lag[:, 0]] - te[lag[:, k]])) for k in _delay_grid(flat)]
-    if effect == "encoder_offset":
-        S = _input_sensitivity(model, flat, idx, j, torch.full((N,), -1.0), None, None, 1e-2)
-        return [({}, S.numpy().astype(np.float64))]
-    if effect == "strap_compliance":
-        # parameter = compliance 1/k; the shift is −τ_e/k (and its derivatives); h in rad/(N m)
-        S = _input_sensitivity(model, flat, idx, j, -flat.tau_e[idx, j], -flat.tau_e_d[idx, j],
-                               -flat.tau_e_dd[idx, j], 1e-4)
-        return [({}, S.numpy().astype(np.float64))]
-    raise ValueError(effect)
+def features(model, flat: Flat, idx: torch.Tensor, effect: str, j: int) -> list[tuple[dict, np.ndarray]]:
+    """Candidate features (one or several grid variants) at rows idx: [(extra, F (len(idx), n))], each effect's
+    own (`candidates.Candidate.features`)."""
+    c = LIBRARY.get(effect)
+    if c is None or c.features is None:
+        raise ValueError(effect)
+    return c.features(model, flat, idx, j)
 
 
 def _per_group_theta(a: np.ndarray, r: np.ndarray, code: np.ndarray, n_groups: int, positive: bool) -> np.ndarray:
