@@ -408,6 +408,18 @@ class JointProblem:
                 f.est[e], f.se[e] = float(coef[k]), float(se[k])
         f.lags = L
 
+    def fit_split(self, f: Fit, effect: str, masks: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, Fit]:
+        """`f` with the linear term `effect`'s column split into one column per row mask (a subject's rows, or a
+        group of subjects'): the coefficients and HAC SEs of the split columns, and the fit (its `pred`)."""
+        X, names, off = self._design(f.terms, f.nu)
+        k = names.index(effect)
+        X = np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1)
+        tr = self.train
+        th = wls(X[tr], (self.y - off)[tr], self.w[tr])
+        sub = list(range(X.shape[1] - len(masks), X.shape[1]))
+        coef, se, L = hac_subset(X[tr], (self.y - off)[tr], self.w[tr], sub)
+        return coef, se, Fit(terms=list(f.terms), theta=th, names=names, nu=f.nu, pred=X @ th + off, lags=L)
+
     def held_sq(self, f: Fit, rows: np.ndarray | None = None) -> np.ndarray:
         """Squared error against the recorded (unfiltered) τ, mass-normalised, on the held-out rows (or `rows`:
         NaN where the filtered signals are not usable)."""

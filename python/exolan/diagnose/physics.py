@@ -68,6 +68,7 @@ class PhysicsResult:
     cross: dict = field(default_factory=dict)             # (effect, j) -> TermEstimate on the learned residual
     term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
     term_rows: dict = field(default_factory=dict)         # (effect, j) -> that gain per held row of the flat
+    forms: dict = field(default_factory=dict)             # (effect, j) -> its subject form (`physics_subjects`)
     seconds: float = 0.0
     cutoff_hz: float = 0.0
 
@@ -282,7 +283,7 @@ def reset(res: PhysicsResult) -> None:
     """Forget an earlier selection: a selection rerun on fewer joints must not count the acceptances of a joint
     it no longer decides in Holm's step-down (they would loosen every later threshold)."""
     res.accepted, res.estimates, res.tests, res.status = [], {}, [], {}
-    res.base, res.heldout, res.cross, res.term_gain, res.term_rows = {}, {}, {}, {}, {}
+    res.base, res.heldout, res.cross, res.term_gain, res.term_rows, res.forms = {}, {}, {}, {}, {}, {}
     res.e_held, res.held_rows = None, None
     res._fits = dict(res._base_fits)
 

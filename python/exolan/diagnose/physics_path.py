@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..runio import jsonable
-from . import physics, rules, stats
+from . import physics, rules, stats, subjects
 from .candidates import LIBRARY, blank_entry
 from .export import extend
 from .fit import predict, sq_errors
@@ -135,6 +135,8 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
                         e.update(heldout_gain=g["gain"], heldout_gain_ci=g["ci"],
                                  decision_gain=dict(g, scale="parametric base, unweighted"))
                     e.update(**evidence(phys, flat, s, key))
+                    if key in phys.forms and e["status"] == "accepted":
+                        with_form(e, phys.forms[key])
                 if key in phys.cross:
                     e["cross_check"] = phys.cross[key].to_json()
             else:
@@ -143,15 +145,36 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
     return out
 
 
+def with_form(e, form: dict) -> None:
+    """An accepted physics-first entry sized by its subject form (`physics_subjects`): a switch's one θ on its
+    subjects' trials, or the subjects' own sizes (the estimate their geometric mean), as the learned path reports."""
+    e.form = {k: v for k, v in form.items() if k not in ("fit", "estimate_by_subject")}
+    e.subject_form = {k: v for k, v in form.items()
+                      if k not in ("fit", "trials", "subject_of_trial", "estimate_by_subject", "estimate", "ci")}
+    e.update(estimate=form["estimate"], ci=form["ci"],
+             ci_method="HAC (Newey-West) sandwich of the parametric base's weighted LS fit, the term split by subject")
+    if form["kind"] == "switch":
+        e.subjects = list(form["subjects"])
+    else:
+        e.estimate_by_subject = form["estimate_by_subject"]
+
+
 def extended_model(base, flat, s, accepted: list, phys: physics.PhysicsResult, refit_frozen):
-    """The learned base with the accepted terms held at their physical sizes, its networks refitted with the
-    reference's schedule and minibatches (so it differs from the reference by the terms alone)."""
+    """The learned base with the accepted terms held at their physical sizes (a subject form's per subject), its
+    networks refitted with the reference's schedule and minibatches (so it differs from the reference by the terms
+    alone)."""
     init: dict = {}
     for eff, j in accepted:
         m = phys.estimates[(eff, j)]
-        init.setdefault(eff, {})[j] = m.estimate
+        form = phys.forms.get((eff, j))
+        value = m.estimate                          # in the vocabulary's units (a strap's k), as `extend` takes it
+        if form:
+            value = 1.0 / form["theta"] if LIBRARY[eff].inverse else form["theta"]
+        init.setdefault(eff, {})[j] = value
         if m.nu is not None:
             init.setdefault("stribeck_vs", {})[j] = m.nu
+        if form:
+            init = subjects.gated(init, form, eff, j)
     ext = extend(base, flat, accepted, init=init, max_delay=s.max_delay)
     refit_frozen(ext, flat, s, 1)
     return ext

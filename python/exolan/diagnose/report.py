@@ -167,12 +167,14 @@ def _evidence_lines(f: dict) -> list[str]:
         return ", ".join(f"{u} {_fmt(v['theta'], 3)} ± {_fmt(v['se'], 2)}" for u, v in form["theta_by_subject"].items())
 
     sf = f.get("subject_form") or {}
+    # where θ by subject comes from: the learned path's post-hoc look, or physics first's split joint fit
+    theta_from = sf.get("method") or "post-hoc θ by subject on the training rows (HAC SE)"
     if sf.get("subjects"):
         th = by_subject(sf)
         het = sf.get("heterogeneity") or {}
         adv = sf.get("advantage_over_shared") or {}
-        out.append(f"  - a term of {', '.join(sf['subjects'])} only (fitted on their trials): post-hoc θ by subject on "
-                   f"the training rows (HAC SE) {th}; Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, "
+        out.append(f"  - a term of {', '.join(sf['subjects'])} only (fitted on their trials): {theta_from} {th}; "
+                   f"Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, "
                    f"p {_fmt(het.get('p'), 2)}; it beats one shared term by {_fmt(adv.get('gain'), 3)} "
                    f"CI {_fmt(adv.get('ci'), 3)}")
         over = sf.get("sizes_advantage_over_switch")
@@ -189,9 +191,9 @@ def _evidence_lines(f: dict) -> list[str]:
         by = f.get("estimate_by_subject") or {}
         out.append("  - every subject at their own size (θ_u = θ e^(a_u), θ the subjects' geometric mean): "
                    + ", ".join(f"{u} {_fmt(v['estimate'])} CI {_fmt(v['ci'], 3)}" for u, v in by.items())
-                   + " (HAC on each subject's training rows, conditional on the networks: narrower than the shared "
-                   "estimate's interval, which adds the spread to the warm start); post-hoc θ by subject on the "
-                   f"training rows {by_subject(sf)}, Cochran's Q "
+                   + ("" if sf.get("method") else " (HAC on each subject's training rows, conditional on the "
+                      "networks: narrower than the shared estimate's interval, which adds the spread to the warm start)")
+                   + f"; {theta_from} {by_subject(sf)}, Cochran's Q "
                    f"{_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}; it beats one shared "
                    f"term by {_fmt(adv.get('gain'), 3)} CI {_fmt(adv.get('ci'), 3)}"
                    + (f" and the term of the subjects whose post-hoc θ clears alone by {_fmt(over.get('gain'), 3)} "

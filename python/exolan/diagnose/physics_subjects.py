@@ -1,0 +1,114 @@
+"""Physics first, per subject: an accepted term that the subjects carry at different sizes, or that only some of
+them carry (one user's strap, one exoskeleton unit's friction), found in the parametric joint fit itself.
+
+A term shared by every subject fits a value between the subjects' own and misfits each of them. Here the accepted
+term's column is split into one column per subject in the joint fit (`ident.JointProblem.fit_split`, the base and
+the other terms shared): its per-subject θ with HAC SEs. The rule is the learned path's (`subjects.subject_form`)
+applied to these fitted θ instead of post-hoc ones: the subjects must differ (Cochran's Q, p < 0.05), a subject
+carries the term where its θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
+subjects); some subjects only: a switch (the term on their trials, one θ); all of them: every subject at their
+own size. The form is taken only where it beats the shared term on the held-out segments (paired squared
+errors, block-bootstrap 95 % CI above 0). It changes how an accepted term is sized, not whether it is accepted:
+the family's significance budget is untouched.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from scipy import stats as sps
+
+from ..extensions import SIZEABLE
+from . import ident, physics
+from .candidates import LIBRARY
+from .inference import cochran_q
+
+
+def users_of(flat) -> tuple[list, np.ndarray] | None:
+    """The subjects and each flat row's subject index; None for one subject (or files named as subjects)."""
+    users = sorted({m["subject"] for m in flat.trial_meta})
+    if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
+        return None
+    row_user = np.array([users.index(u) for u in flat.subjects_of(torch.arange(flat.q.shape[0]))])
+    return users, row_user
+
+
+def _ci(effect: str, th: float, se: float) -> tuple[float, list]:
+    """The vocabulary's parameter and 95 % interval of a linear θ (a strap's k = 1/θ)."""
+    return LIBRARY[effect].report_param(dict(estimate=th, ci=[th - physics.Z95 * se, th + physics.Z95 * se]))
+
+
+def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, row_user: np.ndarray, flat,
+            n_boot: int) -> dict | None:
+    """The subject form of the accepted linear term `effect` in the joint fit `f` (module docstring), or None."""
+    masks = [(row_user == k).astype(float) for k in range(len(users))]
+    th, se, split = prob.fit_split(f, effect, masks)
+    if not np.all(np.isfinite(se) & (se > 0)):
+        return None
+    Q, p_het = cochran_q(th, se)
+    z_crit = float(sps.norm.ppf(1 - 0.025 / len(users)))
+    z = th / se
+    positive = ident.TERMS[effect].sided == "greater"
+    on = [k for k in range(len(users)) if (z[k] if positive else abs(z[k])) > z_crit]
+    out = dict(theta_by_subject={u: dict(theta=float(th[k]), se=float(se[k])) for k, u in enumerate(users)},
+               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit,
+               method="the joint fit with the term split by subject (weighted LS, HAC SE)")
+    if not (on and p_het < 0.05):
+        return None
+    trial_user = np.array([users.index(m["subject"]) for m in flat.trial_meta], dtype=np.int64)
+    if len(on) < len(users):        # a switch: the term on these subjects' trials only, one θ
+        mask = np.isin(row_user, on).astype(float)
+        (th_on,), (se_on,), fit = prob.fit_split(f, effect, [mask])
+        est, ci = _ci(effect, float(th_on), float(se_on))
+        out.update(kind="switch", subjects=[users[k] for k in on], trials=np.isin(trial_user, on).astype(float),
+                   theta=float(th_on), estimate=est, ci=ci)
+    elif effect in SIZEABLE and np.all(th > 0):     # every subject at their own size: θ_u = θ e^{a_u}
+        log_th = np.log(th)
+        sd = float(np.sqrt(np.sum((se / th) ** 2))) / len(users)     # of the mean log size (delta method)
+        fit = split
+        theta = float(math.exp(log_th.mean()))
+        est, ci = LIBRARY[effect].report_param(dict(estimate=theta, ci=[math.exp(log_th.mean() - physics.Z95 * sd),
+                                                                         math.exp(log_th.mean() + physics.Z95 * sd)]))
+        out.update(kind="sizes", users=list(users), subject_of_trial=trial_user,
+                   log_sizes=[float(v) for v in log_th - log_th.mean()], theta=theta, estimate=est, ci=ci,
+                   estimate_by_subject={u: dict(zip(("estimate", "ci"), _ci(effect, float(th[k]), float(se[k]))))
+                                        for k, u in enumerate(users)})
+    else:
+        return None
+    g = physics._held_gain(prob.held_sq(f), prob.held_sq(fit), n_boot)
+    out["advantage_over_shared"] = dict(gain=g["gain"], ci=g["ci"], scale="parametric base, unweighted")
+    if not g["ci"][0] > 0:
+        return None
+    out["fit"] = fit
+    return out
+
+
+def take(res: physics.PhysicsResult, flat, n_boot: int, log=None) -> None:
+    """Every accepted linear term of `res` given its subject form where the data ask for one (`res.forms`); the
+    joint's held-out errors (`res.e_held`, which the second gate reads) then those of the form's fit."""
+    who = users_of(flat)
+    if who is None:
+        return
+    users, row_user = who
+    for j in sorted({jj for _, jj in res.accepted}):
+        prob, forms = res._probs[j], {}
+        for e in [x for x, jj in res.accepted if jj == j and not ident.TERMS[x].fixed]:   # a delay's size is its ν
+            form = form_of(prob, res._fits[j], e, users, row_user, flat, n_boot)
+            if form is not None:
+                forms[e] = form
+        if not forms:
+            continue
+        # one form per joint equation: the one that gains most over the shared fit (the others stay shared)
+        e = max(forms, key=lambda x: forms[x]["advantage_over_shared"]["gain"])
+        form = forms[e]
+        res.forms[(e, j)] = form
+        res.e_held[j] = prob.held_sq(form["fit"], res.held_rows)
+        if log:
+            what = (f"{', '.join(form['subjects'])} only" if form["kind"] == "switch" else
+                    "every subject at their own size: " + ", ".join(
+                        f"{u} {v['estimate']:.4g}" for u, v in form["estimate_by_subject"].items()))
+            log(f"physics: {e} on {flat.joints[j]} differs by subject (Q {form['heterogeneity']['Q']:.3g}, "
+                f"p {form['heterogeneity']['p']:.2g}): {what}, {form['estimate']:.4g} [{form['ci'][0]:.4g}, "
+                f"{form['ci'][1]:.4g}]; beats the shared term on held-out data by "
+                f"{form['advantage_over_shared']['gain']:.3g}")
