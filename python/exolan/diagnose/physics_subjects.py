@@ -17,12 +17,11 @@ import math
 
 import numpy as np
 import torch
-from scipy import stats as sps
 
 from ..extensions import SIZEABLE
 from . import ident, physics
 from .candidates import LIBRARY
-from .inference import cochran_q
+from .subjects import carriers
 
 
 def users_of(flat) -> tuple[list, np.ndarray] | None:
@@ -46,16 +45,11 @@ def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, ro
     th, se, split = prob.fit_split(f, effect, masks)
     if not np.all(np.isfinite(se) & (se > 0)):
         return None
-    Q, p_het = cochran_q(th, se)
-    z_crit = float(sps.norm.ppf(1 - 0.025 / len(users)))
-    z = th / se
-    positive = ident.TERMS[effect].sided == "greater"
-    on = [k for k in range(len(users)) if (z[k] if positive else abs(z[k])) > z_crit]
-    out = dict(theta_by_subject={u: dict(theta=float(th[k]), se=float(se[k])) for k, u in enumerate(users)},
-               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit,
-               method="the joint fit with the term split by subject (weighted LS, HAC SE)")
-    if not (on and p_het < 0.05):
+    on_users, out = carriers(effect, users, th, se)
+    if not on_users:
         return None
+    on = [users.index(u) for u in on_users]
+    out["method"] = "the joint fit with the term split by subject (weighted LS, HAC SE)"
     trial_user = np.array([users.index(m["subject"]) for m in flat.trial_meta], dtype=np.int64)
     if len(on) < len(users):        # a switch: the term on these subjects' trials only, one θ
         mask = np.isin(row_user, on).astype(float)

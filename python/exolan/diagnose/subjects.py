@@ -51,7 +51,6 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
     m = flat.mass[idx].numpy().astype(np.float64)
     a_all = F[:, j] / m
     r_all = (flat.tau[idx, j] - predict(model, flat, idx)[:, j]).numpy().astype(np.float64) / m
-    c = LIBRARY[effect]
     th, se = {}, {}
     start = 0
     for u, rw in zip(users, rows):
@@ -60,13 +59,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
         if not np.std(a) > 0:
             return None
         th[u], se[u], _ = hac_step(a, r, len(rw))
-    Q, p_het = cochran_q(np.array([th[u] for u in users]), np.array([se[u] for u in users]))
-    z_crit = float(scipy_stats.norm.ppf(1 - 0.025 / len(users)))
-    z = {u: th[u] / se[u] for u in users}
-    on = [u for u in users if (z[u] if c.positive else abs(z[u])) > z_crit]
-    out = dict(theta_by_subject={u: dict(theta=float(th[u]), se=float(se[u])) for u in users},
-               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit)
-    if not (on and p_het < 0.05):
+    on, out = carriers(effect, users, np.array([th[u] for u in users]), np.array([se[u] for u in users]))
+    if not on:
         return None
     if len(on) < len(users):    # a switch: the term on these subjects' trials only
         trial_on = np.array([flat.trial_meta[i]["subject"] in on for i in range(len(flat.trial_meta))], dtype=float)
@@ -75,6 +69,19 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
         out["subject_of_trial"] = np.array([users.index(m["subject"]) for m in flat.trial_meta], dtype=np.int64)
         out["users"] = users
     return out if ("subjects" in out or "users" in out) else None
+
+
+def carriers(effect: str, users: list, th: np.ndarray, se: np.ndarray) -> tuple[list, dict]:
+    """The subjects that carry an effect by their own θ (with SEs): where the subjects differ (Cochran's Q,
+    p < 0.05), those whose θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
+    subjects); none where they do not differ. And the record of the test (θ by subject, Q, the z bound)."""
+    Q, p_het = cochran_q(th, se)
+    z_crit = float(scipy_stats.norm.ppf(1 - 0.025 / len(users)))
+    z = th / se
+    on = [u for k, u in enumerate(users) if (z[k] if LIBRARY[effect].positive else abs(z[k])) > z_crit]
+    rec = dict(theta_by_subject={u: dict(theta=float(th[k]), se=float(se[k])) for k, u in enumerate(users)},
+               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit)
+    return (on if p_het < 0.05 else []), rec
 
 
 def gated(init: dict, form: dict | None, effect: str, j: int) -> dict:
