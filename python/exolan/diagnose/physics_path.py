@@ -77,15 +77,13 @@ def learned_residual(ref, flat) -> np.ndarray:
     return (flat.tau - predict(ref, flat, idx)).double().numpy()
 
 
-def evidence(phys: physics.PhysicsResult, flat, s, key: tuple) -> dict:
+def evidence(phys: physics.PhysicsResult, s, key: tuple, groups: np.ndarray, kind: str, subj: np.ndarray) -> dict:
     """Which data carry a physics-first term's held-out gain (its own share in the joint fit, per held row): the
-    gain by task (or trial) and by subject. Reported, not decided on: the physics-first rules do not look again."""
+    gain by task (or trial) and by subject (`groups`, `subj`: of the held rows). Reported, not decided on: the
+    physics-first rules do not look again."""
     d = phys.term_rows.get(key)
     if d is None:
         return {}
-    held = flat.index("held")
-    groups, kind = sample_groups(flat, held)
-    subj = flat.subjects_of(held)
     ok = np.isfinite(d)
     inv = dict(by=kind, groups={str(g): float(d[ok & (groups == g)].mean()) for g in np.unique(groups[ok])},
                scale="parametric base, unweighted",
@@ -97,6 +95,9 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
     """The report's candidate entries from the physics-first verdicts (the same keys as the learned path's)."""
     ver = physics.verdicts(phys)
     subjects = sorted({m["subject"] for m in flat.trial_meta})
+    held = flat.index("held")
+    groups, kind = sample_groups(flat, held)
+    subj = flat.subjects_of(held)
     out = []
     for effect in s.effects:
         c = LIBRARY[effect]
@@ -134,7 +135,7 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
                     if g:
                         e.update(heldout_gain=g["gain"], heldout_gain_ci=g["ci"],
                                  decision_gain=dict(g, scale="parametric base, unweighted"))
-                    e.update(**evidence(phys, flat, s, key))
+                    e.update(**evidence(phys, s, key, groups, kind, subj))
                     if key in phys.forms and e["status"] == "accepted":
                         with_form(e, phys.forms[key])
                 if key in phys.cross:
