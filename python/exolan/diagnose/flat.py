@@ -80,6 +80,14 @@ class Flat:
         """The subject of each row idx (its trial's)."""
         return np.array([self.trial_meta[i]["subject"] for i in self.trial[idx].numpy()])
 
+    def user_index(self) -> tuple[list, np.ndarray] | None:
+        """The subjects (sorted) and every row's subject index; None for one subject (or recordings named after
+        their files, layout 2 without a subject column)."""
+        users = sorted({m["subject"] for m in self.trial_meta})
+        if len(users) < 2 or all(m["subject"] == m["name"] for m in self.trial_meta):
+            return None
+        return users, np.array([users.index(u) for u in self.subjects_of(torch.arange(self.q.shape[0]))])
+
     def exo_hist(self, idx: torch.Tensor):
         """(B, K+1, n) histories of τ_e, τ̇_e, τ̈_e for the rows idx."""
         lg = self.lag[idx]

@@ -310,6 +310,7 @@ class Fit:
     se: dict = field(default_factory=dict)      # effect -> SE of its parameter (θ, or ν for fixed terms)
     est: dict = field(default_factory=dict)     # effect -> θ (or ν for fixed terms)
     lags: int = 0
+    split: dict = field(default_factory=dict)   # effect -> (θ by subject, SE by subject) of a term split by subject
 
 
 class JointProblem:
@@ -327,12 +328,19 @@ class JointProblem:
         self.w = np.ones(len(self.y))
         self._Q = None
         self._cols: dict = {}
+        self.split: dict = {}       # effect -> row masks: the term's column split by subject (`physics.select`)
 
     def col(self, effect: str, nu):
         key = (effect, None if nu is None else float(nu))
         if key not in self._cols:
             self._cols[key] = np.nan_to_num(self.sig.lp(TERMS[effect].column(self.sig, self.j, nu, self.ctx)))
         return self._cols[key]
+
+    def _columns(self, eff: str, c: np.ndarray) -> list:
+        """A linear term's columns with their names: one, or one per subject where the term is split."""
+        if eff in self.split:
+            return [(f"{eff}#{k}", c * m) for k, m in enumerate(self.split[eff])]
+        return [(eff, c)]
 
     def _design(self, terms: list, nu: dict):
         X, names, offset = [self.Xb], list(self.base_names), np.zeros(len(self.y))
@@ -341,7 +349,8 @@ class JointProblem:
             if TERMS[eff].fixed:
                 offset += c
             else:
-                X.append(c[:, None]); names.append(eff)
+                for name, ck in self._columns(eff, c):
+                    X.append(ck[:, None]); names.append(name)
         return np.concatenate(X, 1), names, offset
 
     def _partial(self, v: np.ndarray) -> np.ndarray:
@@ -358,11 +367,11 @@ class JointProblem:
         off = np.zeros(int(tr.sum()))
         cols = []
         for eff in terms:
-            c = self.col(eff, nu.get(eff))[tr]
+            c = self.col(eff, nu.get(eff))
             if TERMS[eff].fixed:
-                off += c
+                off += c[tr]
             else:
-                cols.append(c)
+                cols += [ck[tr] for _, ck in self._columns(eff, c)]
         rz = self._partial((self.y[tr] - off) * sw)
         if cols:
             Cz = self._partial(np.stack(cols, 1) * sw[:, None])
@@ -397,15 +406,25 @@ class JointProblem:
                 which.append(e)
         Xa = np.concatenate([X] + extra, 1) if extra else X
         r = self.y - f.pred
-        lin = [f.names.index(e) for e in f.terms if not TERMS[e].fixed]
+        lin_names = [n for n in f.names if n.split("#")[0] in f.terms and not TERMS[n.split("#")[0]].fixed]
+        lin = [f.names.index(n) for n in lin_names]
         sub = lin + list(range(X.shape[1], Xa.shape[1]))
         # the linearised model's residual regression: a Gauss-Newton step from the fit (zero for linear terms)
         coef, se, L = hac_subset(Xa[tr], r[tr] + (Xa[tr][:, lin] @ f.theta[lin] if lin else 0), self.w[tr], sub)
-        for k, e in enumerate([f.names[i] for i in lin] + which):
+        parts: dict = {}
+        for k, n in enumerate(lin_names + which):
+            e = n.split("#")[0]
             if TERMS[e].fixed:
                 f.est[e], f.se[e] = float(f.nu[e]), float(se[k])
+            elif "#" in n:
+                parts.setdefault(e, []).append((float(coef[k]), float(se[k])))
             else:
                 f.est[e], f.se[e] = float(coef[k]), float(se[k])
+        for e, v in parts.items():      # a split term: its θ by subject, and their inverse-variance pool
+            th, s = np.array([a for a, _ in v]), np.array([b for _, b in v])
+            w = 1.0 / np.square(s)
+            f.split[e] = (th, s)
+            f.est[e], f.se[e] = float(np.sum(w * th) / np.sum(w)), float(1.0 / math.sqrt(np.sum(w)))
         f.lags = L
 
     def fit_split(self, f: Fit, effect: str, masks: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, Fit]:

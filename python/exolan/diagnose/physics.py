@@ -124,7 +124,11 @@ def _ci_text(ci) -> str:
 def _p(prob: ident.JointProblem, f: ident.Fit, eff: str) -> float:
     """The test's p; 1 where the nonlinear parameter ends at an edge of its grid (not identified: the optimum
     lies at or beyond what the grid can say, e.g. a Stribeck velocity at the Coulomb term's own smoothing ε)."""
-    p = ident.p_value(eff, f.est[eff], f.se[eff])
+    if eff in f.split:      # split by subject: effect in at least one subject (Bonferroni over the subjects)
+        th, se = f.split[eff]
+        p = min(1.0, len(th) * min(ident.p_value(eff, a, b) for a, b in zip(th, se)))
+    else:
+        p = ident.p_value(eff, f.est[eff], f.se[eff])
     g = ident.TERMS[eff].grid
     if g is not None:
         grid = g(prob.sig, prob.j, prob.ctx)
@@ -163,12 +167,21 @@ def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = iden
     Xb = sig.lp(X_raw)
     ctx = dict(max_delay=max_delay, base_theta={}, base_raw=X_raw)
     probs, cur = {}, {}
+    who = flat.user_index()
     for j in joint_ids:
         prob = ident.JointProblem(sig, j, Xb, names, ctx)
-        f0 = prob.fit([], intervals=False)
-        prob.set_weights(f0)
+        ctx["base_theta"][j] = prob.fit([], intervals=False).theta      # provisional: the strap's column reads it
+        # the weights per trial from the most flexible linear model (every linear candidate, split by subject):
+        # from the base alone they would be lowest on the trials that carry an effect, hiding it from its test
+        lin = [e for e in effects if e in ident.TERMS and ident.TERMS[e].grid is None and not ident.TERMS[e].fixed
+               and (flat.has_exo or not LIBRARY[e].needs_exo)]
+        if who is not None:
+            prob.split = {e: [(who[1] == k).astype(float) for k in range(len(who[0]))] for e in lin}
+        prob.set_weights(prob.fit(lin, intervals=False))
+        prob.split = {}
         f0 = prob.fit([], intervals=False)
         ctx["base_theta"][j] = f0.theta
+        prob._cols = {}         # columns made with the provisional base (the strap's) are made again
         probs[j], cur[j] = prob, f0
     cands = [(e, j) for e in effects if e in ident.TERMS for j in joint_ids
              if flat.has_exo or not LIBRARY[e].needs_exo]
@@ -215,14 +228,16 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     probs, cur, cands, joint_ids, alpha = res._probs, res._fits, res._cands, res._joint_ids, res.alpha
     pool, r = [c for c in cands if joints is None or c[1] in joints], 0
     accepted = {j: [] for j in joint_ids}
+    who = flat.user_index()
+    masks = None if who is None else [(who[1] == k).astype(float) for k in range(len(who[0]))]
     while pool:
         tried = []
         for e, j in pool:
             log(f"physics step {r + 1}: testing {e} on {flat.joints[j]}")
-            f = probs[j].fit(accepted[j] + [e])
-            tried.append((_p(probs[j], f, e), e, j, f))
+            tried.append(_test(probs[j], accepted[j], e, masks) + (e, j))
         tried.sort(key=lambda x: x[0])
-        p, e, j, f = tried[0]
+        p, f, split, e, j = tried[0]
+        tried = [(pe, ee, jj, ff) for pe, ff, _, ee, jj in tried]
         thr = alpha / (len(cands) - r)
         gain = _held_gain(probs[j].held_sq(cur[j]), probs[j].held_sq(f), n_boot)
         te = _estimate(probs[j], f, e, flat.joints[j])
@@ -249,6 +264,8 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             continue
         accepted[j].append(e)
         cur[j] = f
+        if split:           # it enters the later steps' fits split by subject
+            probs[j].split[e] = masks
         res.status[(e, j)] = ("accepted", f"p {p:.3g} ≤ Holm's threshold {thr:.3g}; held-out gain {gain['gain']:.3g} "
                                           f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
         log(f"physics: {e} on {flat.joints[j]} accepted at {te.estimate:.4g} [{te.ci[0]:.4g}, {te.ci[1]:.4g}] "
@@ -279,6 +296,24 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     return res
 
 
+def _test(prob: ident.JointProblem, accepted: list, e: str, masks) -> tuple:
+    """A candidate's p with the accepted terms: its shared column, and where the data hold several subjects and
+    the term is linear, also its column split by subject (an effect that some subjects lack or carry at another
+    size leaves the shared column a misfit as long as their trials, which widens its interval until it is missed);
+    p = 2 min of the two (Bonferroni over the two forms). Returns (p, the fit of the smaller, split or not)."""
+    f = prob.fit(accepted + [e])
+    p = _p(prob, f, e)
+    if masks is None or ident.TERMS[e].fixed:
+        return p, f, False
+    prob.split[e] = masks
+    try:
+        fs = prob.fit(accepted + [e])
+        ps = _p(prob, fs, e)
+    finally:
+        del prob.split[e]
+    return (min(1.0, 2 * p), f, False) if p <= ps else (min(1.0, 2 * ps), fs, True)
+
+
 def reset(res: PhysicsResult) -> None:
     """Forget an earlier selection: a selection rerun on fewer joints must not count the acceptances of a joint
     it no longer decides in Holm's step-down (they would loosen every later threshold)."""
@@ -286,6 +321,8 @@ def reset(res: PhysicsResult) -> None:
     res.base, res.heldout, res.cross, res.term_gain, res.term_rows, res.forms = {}, {}, {}, {}, {}, {}
     res.e_held, res.held_rows = None, None
     res._fits = dict(res._base_fits)
+    for prob in getattr(res, "_probs", {}).values():
+        prob.split = {}
 
 
 def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, joint: str, j: int) -> ident.Fit:

@@ -16,21 +16,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 
 from ..extensions import SIZEABLE
 from . import ident, physics
 from .candidates import LIBRARY
 from .subjects import carriers
-
-
-def users_of(flat) -> tuple[list, np.ndarray] | None:
-    """The subjects and each flat row's subject index; None for one subject (or files named as subjects)."""
-    users = sorted({m["subject"] for m in flat.trial_meta})
-    if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
-        return None
-    row_user = np.array([users.index(u) for u in flat.subjects_of(torch.arange(flat.q.shape[0]))])
-    return users, row_user
 
 
 def _ci(effect: str, th: float, se: float) -> tuple[float, list]:
@@ -81,14 +71,16 @@ def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, ro
 def take(res: physics.PhysicsResult, flat, n_boot: int, log=None) -> None:
     """Every accepted linear term of `res` given its subject form where the data ask for one (`res.forms`); the
     joint's held-out errors (`res.e_held`, which the second gate reads) then those of the form's fit."""
-    who = users_of(flat)
+    who = flat.user_index()
     if who is None:
         return
     users, row_user = who
     for j in sorted({jj for _, jj in res.accepted}):
         prob, forms = res._probs[j], {}
+        prob.split = {}             # the forms are judged against the joint fit with every term shared
+        shared = prob.fit(res._fits[j].terms, intervals=False)
         for e in [x for x, jj in res.accepted if jj == j and not ident.TERMS[x].fixed]:   # a delay's size is its ν
-            form = form_of(prob, res._fits[j], e, users, row_user, flat, n_boot)
+            form = form_of(prob, shared, e, users, row_user, flat, n_boot)
             if form is not None:
                 forms[e] = form
         if not forms:
