@@ -19,7 +19,7 @@ Jobs run in a local process pool (``--workers``) or as Ray tasks (``--ray ADDRES
 pure function :func:`run_job`, so both give the same numbers.
 
 Scales: ``small`` (~15 min on two cores: 21 users x 28 tasks of 2 s, 3 epochs, 2 seeds; part of the main
-job), ``converge`` (the claims: early-stopped, 3 seeds; 81 min on 2 cores), ``medium`` (6 s trials, 30 epochs,
+job), ``converge`` (the claims: early-stopped, 3 seeds, 51 runs; 106 min on 2 cores), ``medium`` (6 s trials, 30 epochs,
 3 seeds), ``paper`` (the default world, 1000 epochs, 5 seeds). On a machine with CUDA, ``medium`` and ``paper``
 train on the GPU (``EXOLAN_DEVICE=cpu|cuda`` overrides); ``--workers`` defaults to one per core as far as memory
 allows, on a GPU too; evaluation always runs on the CPU in the worker.
