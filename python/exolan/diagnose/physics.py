@@ -8,7 +8,9 @@ Rule, in plain words (the report states it):
 2. Forward selection: at step r every remaining candidate is fitted with the base and the terms accepted so far
    (weighted LS on the training segments, `ident.JointProblem`), and tested against "no effect" with its HAC
    interval (one-sided where only one sign is physical; a Stribeck friction's p is multiplied by its grid's size,
-   since its Stribeck velocity is chosen on the data). The smallest p is compared with Holm's threshold
+   since its Stribeck velocity is chosen on the data). With several subjects a linear candidate is also tested
+   split by subject (an effect in at least one, Bonferroni over the subjects) and its p is twice the smaller of the
+   two forms' (`_test`); the form taken enters the later fits. The smallest p is compared with Holm's threshold
    α/(m − r), α = 5 %: the family-wise level of every accept decision together is α. Where it fails, selection
    stops.
 3. The held-out check can only remove a term: the model with it must beat the model without it on the held-out
