@@ -88,6 +88,11 @@ class Flat:
             return None
         return users, np.array([users.index(u) for u in self.subjects_of(torch.arange(self.q.shape[0]))])
 
+    def user_masks(self) -> list[np.ndarray] | None:
+        """One 0/1 row mask per subject (`user_index`'s order); None for one subject."""
+        who = self.user_index()
+        return None if who is None else [(who[1] == k).astype(float) for k in range(len(who[0]))]
+
     def exo_hist(self, idx: torch.Tensor):
         """(B, K+1, n) histories of τ_e, τ̇_e, τ̈_e for the rows idx."""
         lg = self.lag[idx]

@@ -169,7 +169,7 @@ def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = iden
     Xb = sig.lp(X_raw)
     ctx = dict(max_delay=max_delay, base_theta={}, base_raw=X_raw)
     probs, cur = {}, {}
-    who = flat.user_index()
+    masks = flat.user_masks()
     for j in joint_ids:
         prob = ident.JointProblem(sig, j, Xb, names, ctx)
         ctx["base_theta"][j] = prob.fit([], intervals=False).theta      # provisional: the strap's column reads it
@@ -177,8 +177,8 @@ def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = iden
         # from the base alone they would be lowest on the trials that carry an effect, hiding it from its test
         lin = [e for e in effects if e in ident.TERMS and ident.TERMS[e].grid is None and not ident.TERMS[e].fixed
                and (flat.has_exo or not LIBRARY[e].needs_exo)]
-        if who is not None:
-            prob.split = {e: [(who[1] == k).astype(float) for k in range(len(who[0]))] for e in lin}
+        if masks is not None:
+            prob.split = {e: masks for e in lin}
         prob.set_weights(prob.fit(lin, intervals=False))
         prob.split = {}
         f0 = prob.fit([], intervals=False)
@@ -230,8 +230,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     probs, cur, cands, joint_ids, alpha = res._probs, res._fits, res._cands, res._joint_ids, res.alpha
     pool, r = [c for c in cands if joints is None or c[1] in joints], 0
     accepted = {j: [] for j in joint_ids}
-    who = flat.user_index()
-    masks = None if who is None else [(who[1] == k).astype(float) for k in range(len(who[0]))]
+    masks = flat.user_masks()
     while pool:
         tried = []
         for e, j in pool:
