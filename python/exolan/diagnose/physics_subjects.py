@@ -1,8 +1,9 @@
 """Physics first, per subject: an accepted term that the subjects carry at different sizes, or that only some of
 them carry (one user's strap, one exoskeleton unit's friction), found in the parametric joint fit itself.
 
-A term shared by every subject fits a value between the subjects' own and misfits each of them. Here the accepted
-term's column is split into one column per subject in the joint fit (`ident.JointProblem.fit_split`, the base and
+A term shared by every subject fits a value between the subjects' own and misfits each of them. The selection
+already tests every candidate split by subject too (`physics._test`), so such a term is found; here its form is
+decided against the joint fit with every term shared: the accepted term's column is split into one column per subject in the joint fit (`ident.JointProblem.fit_split`, the base and
 the other terms shared): its per-subject θ with HAC SEs. The rule is the learned path's (`subjects.subject_form`)
 applied to these fitted θ instead of post-hoc ones: the subjects must differ (Cochran's Q, p < 0.05), a subject
 carries the term where its θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
