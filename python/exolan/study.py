@@ -153,7 +153,7 @@ def plan(scale: Scale, with_real: bool) -> list[RunSpec]:
     specs: list[RunSpec] = []
     stop = dict(patience=scale.patience, val_users=scale.val_users)
     for seed in scale.seeds:
-        run = lambda arch, lim, w_fd=0.0, w_ms=0.0, norm="state", h=4: RunSpec(
+        run = lambda arch, lim, w_fd=0.0, w_ms=0.0, norm="state", h=TrainConfig.horizon: RunSpec(
             "world", arch, lim, w_fd, w_ms, seed, scale.epochs, scale.batch_size, norm, ms_horizon=h,
             ms_starts=max(1, scale.ms_rollout_steps // h) if w_ms else TrainConfig.n_starts, **stop)
         for arch in scale.architectures:

@@ -86,7 +86,8 @@ class Flat:
         users = sorted({m["subject"] for m in self.trial_meta})
         if len(users) < 2 or all(m["subject"] == m["name"] for m in self.trial_meta):
             return None
-        return users, np.array([users.index(u) for u in self.subjects_of(torch.arange(self.q.shape[0]))])
+        trial_user = np.array([users.index(m["subject"]) for m in self.trial_meta])
+        return users, trial_user[self.trial.numpy()]
 
     def user_masks(self) -> list[np.ndarray] | None:
         """One 0/1 row mask per subject (`user_index`'s order); None for one subject."""

@@ -3,8 +3,9 @@ them carry (one user's strap, one exoskeleton unit's friction), found in the par
 
 A term shared by every subject fits a value between the subjects' own and misfits each of them. The selection
 already tests every candidate split by subject too (`physics._test`), so such a term is found; here its form is
-decided against the joint fit with every term shared: the accepted term's column is split into one column per subject in the joint fit (`ident.JointProblem.fit_split`, the base and
-the other terms shared): its per-subject θ with HAC SEs. The rule is the learned path's (`subjects.subject_form`)
+decided against the joint fit with every term shared: the accepted term's column is split into one column per
+subject in the joint fit (`ident.JointProblem.fit_split`, the base and the other terms shared): its per-subject θ
+with HAC SEs. The rule is the learned path's (`subjects.subject_form`)
 applied to these fitted θ instead of post-hoc ones: the subjects must differ (Cochran's Q, p < 0.05), a subject
 carries the term where its θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
 subjects); some subjects only: a switch (the term on their trials, one θ); all of them: every subject at their
@@ -31,7 +32,8 @@ def _ci(effect: str, th: float, se: float) -> tuple[float, list]:
 
 def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, row_user: np.ndarray, flat,
             n_boot: int) -> dict | None:
-    """The subject form of the accepted linear term `effect` in the joint fit `f` (module docstring), or None."""
+    """The subject form of the accepted linear term `effect` in the joint fit `f` (module docstring), or None.
+    `users`, `row_user`: `Flat.user_index`."""
     masks = [(row_user == k).astype(float) for k in range(len(users))]
     th, se, split = prob.fit_split(f, effect, masks)
     if not np.all(np.isfinite(se) & (se > 0)):
