@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from exolan.diagnose import physics
+from exolan.diagnose import physics, wls
 from exolan.diagnose.candidates import FITTED
 from exolan.diagnose.flat import prepare
 from exolan.diagnose.synthetic import servo_drive, write_layout2
@@ -127,7 +127,7 @@ def test_hac_of_a_subset_is_the_block_of_the_full_sandwich():
     e = np.convolve(rng.standard_normal(N + 20), np.ones(20) / 20, "valid")[:N]
     y = X @ np.array([1.0, 2.0, -1.0, 0.5, 0.0, 3.0]) + e
     full = sm.OLS(y, X).fit().get_robustcov_results(cov_type="HAC", maxlags=15, use_correction=True)
-    coef, se, _ = ident.hac_subset(X, y, np.ones(N), [4, 5], lags=15)
+    coef, se, _ = wls.hac_subset(X, y, np.ones(N), [4, 5], lags=15)
     assert np.allclose(coef, full.params[[4, 5]], rtol=1e-8) and np.allclose(se, full.bse[[4, 5]], rtol=1e-6)
 
 

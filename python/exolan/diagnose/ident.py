@@ -23,13 +23,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import statsmodels.api as sm
 from scipy import signal
 from scipy import stats as sps
 
 from ..data import finite_runs
 from ..extensions import COULOMB_EPS
-from . import stats
+from . import stats, wls
 
 SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
 CUTOFF_HZ = 25.0        # default low-pass of q and τ: above a limb's or a drive's motion, below encoder noise
@@ -267,37 +266,7 @@ TERMS: dict[str, Term] = {t.effect: t for t in [
 ]}
 
 
-# -- weighted least squares with HAC intervals ----------------------------------------------------------------
-
-def hac_lags(r: np.ndarray) -> int:
-    """Newey-West lags: the block length of the residual's ACF (`stats.block_length`), at least 1."""
-    return int(max(1, min(stats.block_length(r), 500)))
-
-
-def wls(X, y, w):
-    sw = np.sqrt(w)
-    theta, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
-    return theta
-
-
-def hac_subset(X, y, w, subset: list[int], lags: int | None = None) -> tuple[np.ndarray, np.ndarray, int]:
-    """Coefficients and HAC SEs of the columns `subset` of a weighted LS fit, by Frisch-Waugh-Lovell: the
-    other columns partialled out, the sandwich of the small regression is that block of the full one."""
-    sw = np.sqrt(w)
-    Xw, yw = X * sw[:, None], y * sw
-    rest = [i for i in range(X.shape[1]) if i not in subset]
-    A, Z = Xw[:, subset], yw
-    if rest:
-        Q, _ = np.linalg.qr(Xw[:, rest])
-        A = A - Q @ (Q.T @ A)
-        Z = Z - Q @ (Q.T @ Z)
-    ols = sm.OLS(Z, A).fit()
-    L = hac_lags(ols.resid) if lags is None else lags
-    r = ols.get_robustcov_results(cov_type="HAC", maxlags=L, use_correction=False)
-    # the small-sample factor N/(N − p) of the full regression (p: all its columns, the partialled ones too)
-    N = len(Z)
-    return np.asarray(r.params), np.asarray(r.bse) * math.sqrt(N / max(N - X.shape[1], 1)), L
-
+# -- one joint equation's fits ------------------------------------------------------------------------------
 
 @dataclass
 class Fit:
@@ -326,9 +295,42 @@ class JointProblem:
         moving = np.abs(np.nan_to_num(sig.qd[:, j])) >= SLIDING * COULOMB_EPS
         self.train, self.held = rows & sig.train & moving, rows & sig.held
         self.w = np.ones(len(self.y))
-        self._Q = None
         self._cols: dict = {}
         self.split: dict = {}       # effect -> row masks: the term's column split by subject (`physics.select`)
+
+    @property
+    def w(self) -> np.ndarray:
+        """Fit weight per row (feasible WLS); setting it drops the base's factorisation made for the old one."""
+        return self._w
+
+    @w.setter
+    def w(self, w: np.ndarray):
+        self._w, self._qr = w, None
+
+    def _base(self) -> wls.BaseQR:
+        """The weighted base on the training rows, factorised once per weighting."""
+        if self._qr is None:
+            self._qr = wls.BaseQR(self.Xb[self.train], np.sqrt(self.w[self.train]))
+        return self._qr
+
+    def _wls(self, X: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Coefficients of the weighted LS fit of z on X (training rows; its first columns the base)."""
+        sw = np.sqrt(self.w[self.train])
+        return wls.fit(self._base(), X[:, len(self.base_names):] * sw[:, None], z * sw)
+
+    def _hac(self, X: np.ndarray, z: np.ndarray, sub: list) -> tuple:
+        """HAC coefficients and SEs of the term columns `sub` of the weighted fit of z on X (training rows; its
+        first columns the base, partialled out by its factorisation; any other term columns by their own)."""
+        nb = len(self.base_names)
+        assert min(sub, default=nb) >= nb, "only term columns have intervals here"
+        sw = np.sqrt(self.w[self.train])
+        qr = self._base()
+        A, Z = qr.residual(X[:, sub] * sw[:, None]), qr.residual(z * sw)
+        other = [i for i in range(nb, X.shape[1]) if i not in sub]
+        if other:
+            q2 = wls.BaseQR(qr.residual(X[:, other] * sw[:, None]), np.ones(len(sw)))
+            A, Z = q2.residual(A), q2.residual(Z)
+        return wls.hac_partialled(A, Z, X.shape[1])
 
     def col(self, effect: str, nu):
         key = (effect, None if nu is None else float(nu))
@@ -354,11 +356,8 @@ class JointProblem:
         return np.concatenate(X, 1), names, offset
 
     def _partial(self, v: np.ndarray) -> np.ndarray:
-        """v (training rows, weighted) less its projection on the weighted base (one QR per weighting)."""
-        if self._Q is None:
-            sw = np.sqrt(self.w[self.train])
-            self._Q = np.linalg.qr(self.Xb[self.train] * sw[:, None])[0]
-        return v - self._Q @ (self._Q.T @ v)
+        """v (training rows, weighted) less its projection on the weighted base."""
+        return self._base().residual(v)
 
     def sse(self, terms: list, nu: dict) -> float:
         """Weighted training SSE of the base plus `terms` at ν (the base partialled out: a small LS)."""
@@ -390,7 +389,7 @@ class JointProblem:
                 nu[e] = g[int(np.argmin(sse))]
         X, names, off = self._design(terms, nu)
         tr = self.train
-        th = wls(X[tr], (self.y - off)[tr], self.w[tr])
+        th = self._wls(X[tr], (self.y - off)[tr])
         f = Fit(terms=list(terms), theta=th, names=names, nu=nu, pred=X @ th + off)
         if intervals and terms:
             self._intervals(f, X, off)
@@ -410,7 +409,7 @@ class JointProblem:
         lin = [f.names.index(n) for n in lin_names]
         sub = lin + list(range(X.shape[1], Xa.shape[1]))
         # the linearised model's residual regression: a Gauss-Newton step from the fit (zero for linear terms)
-        coef, se, L = hac_subset(Xa[tr], r[tr] + (Xa[tr][:, lin] @ f.theta[lin] if lin else 0), self.w[tr], sub)
+        coef, se, L = self._hac(Xa[tr], r[tr] + (Xa[tr][:, lin] @ f.theta[lin] if lin else 0), sub)
         parts: dict = {}
         for k, n in enumerate(lin_names + which):
             e = n.split("#")[0]
@@ -434,9 +433,9 @@ class JointProblem:
         k = names.index(effect)
         X = np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1)
         tr = self.train
-        th = wls(X[tr], (self.y - off)[tr], self.w[tr])
+        th = self._wls(X[tr], (self.y - off)[tr])
         sub = list(range(X.shape[1] - len(masks), X.shape[1]))
-        coef, se, L = hac_subset(X[tr], (self.y - off)[tr], self.w[tr], sub)
+        coef, se, L = self._hac(X[tr], (self.y - off)[tr], sub)
         return coef, se, Fit(terms=list(f.terms), theta=th, names=names, nu=f.nu, pred=X @ th + off, lags=L)
 
     def held_sq(self, f: Fit, rows: np.ndarray | None = None) -> np.ndarray:
@@ -455,7 +454,6 @@ class JointProblem:
             if m.any():
                 w[self.sig.trial == t] = 1.0 / max(float(np.mean(r2[m])), 1e-12)
         self.w = w / np.median(w[self.train])
-        self._Q = None
 
 
 def p_value(effect: str, est: float, se: float) -> float:

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..runio import jsonable
-from . import ident, stats
+from . import ident, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
 
 Z95 = 1.959963984540054
@@ -372,7 +372,7 @@ def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:
         return {"columns": nb}
     X, names, off = prob._design(f.terms, f.nu)
     tr = prob.train
-    coef, se, _ = ident.hac_subset(X[tr], (prob.y - off)[tr], prob.w[tr], list(range(nb)))
+    coef, se, _ = wls.hac_subset(X[tr], (prob.y - off)[tr], prob.w[tr], list(range(nb)))
     return {nm: dict(value=float(c), se=float(s)) for nm, c, s in zip(names[:nb], coef, se)}
 
 
