@@ -10,6 +10,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from scipy import stats as sps
 
 from ..data import savgol_derivative
 from . import stats
@@ -34,7 +35,7 @@ def torque_unit(flat: Flat) -> str:
 
 
 def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
-                         s: Settings, predict=predict) -> dict:
+                         s: Settings, predict=predict, level: float = 0.05) -> dict:
     """Per joint with exo torque: how far from 1 a torque gain k must be before these data can show it.
 
     Physics: the sensor reads k times the applied torque, so the joint's torque differs from the model's by
@@ -43,7 +44,9 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
     the controller's own variation o = τ_e − copy identifies k (rule 3's own-variation null). Fitting θ
     removes δ = θ o from a residual ε, so its held-out gain is, per sample, w (δ² + 2 δ ε) (w: the decision's
     weight, all mass-normalised): mean θ² P with P = mean(w o²), and a sampling error 2 |θ| SE(w o ε) (block
-    bootstrap). It is seen when θ² P clears 1.96 √(σ_r² + 4 θ² SE²), the refit noise included; solved for
+    bootstrap). It is seen when θ² P clears z √(σ_r² + 4 θ² SE²), the refit noise included, z the normal quantile
+    of the decision's own two-sided level (`level`: the single-term test's α/m, not 5 %, so that the limit is the
+    one the decision can reach); solved for
     |θ| (`theta_limit`), that is k below 1/(1 + |θ|) (`k_below`) or above 1/(1 − |θ|) (`k_above`). An
     estimate under the model's present misfit ε (the reference's, less its share of o, which a gain present
     in the data would put there), not a guarantee, and an optimistic one
@@ -51,11 +54,11 @@ def gain_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarr
     the motion; measured: docs/DIAGNOSIS.md, "Measurements behind the code"): it tells the user that
     a gain closer to 1 than this is not a finding this data set can make.
     """
-    return detection_limits(flat, model, held, w_held, sigma_r, s, predict)["torque_gain"]
+    return detection_limits(flat, model, held, w_held, sigma_r, s, predict, level)["torque_gain"]
 
 
 def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
-                          s: Settings, predict=predict) -> dict:
+                          s: Settings, predict=predict, level: float = 0.05) -> dict:
     """Per joint with exo torque: the shortest actuation delay d these data can show (seconds, `d_limit`).
 
     Physics: the limb feels the recorded torque d later, so the joint's torque differs from the model's by
@@ -66,7 +69,7 @@ def delay_detection_limit(flat: Flat, model, held: torch.Tensor, w_held: np.ndar
     part of it; measured: docs/DIAGNOSIS.md, "Measurements behind the code"). It tells the user that a shorter delay
     is not a finding this data set can make, and that one near the limit is estimated with that bias.
     """
-    return detection_limits(flat, model, held, w_held, sigma_r, s, predict)["actuation_delay"]
+    return detection_limits(flat, model, held, w_held, sigma_r, s, predict, level)["actuation_delay"]
 
 
 def rate_per_trial(x: np.ndarray, flat: Flat) -> np.ndarray:
@@ -78,11 +81,12 @@ def rate_per_trial(x: np.ndarray, flat: Flat) -> np.ndarray:
 
 
 def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray | None, sigma_r: float,
-                     s: Settings, predict=predict) -> dict:
+                     s: Settings, predict=predict, level: float = 0.05) -> dict:
     """`{"torque_gain": gain_detection_limit, "actuation_delay": delay_detection_limit}` in one pass: the model's
     held-out misfit and each joint's own variation o = τ_e − copy are computed once. Both limits solve the
     arithmetic of `gain_detection_limit`'s docstring for an effect δ = θ x (mass-normalised): x = o for a gain
-    (θ = 1 − 1/k), x = ȯ for a delay (θ = d)."""
+    (θ = 1 − 1/k), x = ȯ for a delay (θ = d), at the decision's two-sided `level`."""
+    z = float(sps.norm.ppf(1.0 - level / 2.0))
     gain, delay = {}, {}
     if not flat.has_exo or not len(held):
         return {"torque_gain": gain, "actuation_delay": delay}
@@ -99,8 +103,8 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
         se = float(stats.bootstrap_mean(w * x * r, n_boot=s.n_boot, seed=s.seed).get("se", np.nan))
         if not (P > 0 and np.isfinite(se)):
             return None
-        b = 4.0 * 1.96 ** 2 * se ** 2
-        return math.sqrt((b + math.sqrt(b * b + 4.0 * P ** 2 * (1.96 * sigma_r) ** 2)) / (2.0 * P ** 2))
+        b = 4.0 * z ** 2 * se ** 2
+        return math.sqrt((b + math.sqrt(b * b + 4.0 * P ** 2 * (z * sigma_r) ** 2)) / (2.0 * P ** 2))
 
     for j, name in enumerate(flat.joints):
         te_all = flat.tau_e[:, j].numpy().astype(np.float64)
@@ -112,7 +116,7 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
         rate = np.nan_to_num(rate_per_trial(own_all, flat)[h])
         w = w_held[:, j] if w_held is not None else np.ones(len(te))
         var_te = float(np.var(te))
-        sizes = dict(copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
+        sizes = dict(level=level, copy_share=float(1.0 - np.var(own) / var_te) if var_te > 0 else float("nan"),
                      rms_exo=float(np.sqrt(np.mean(te ** 2))), rms_own=float(np.sqrt(np.mean(own ** 2))))
         theta = theta_limit(own / m, eps[:, j], w)
         if theta is not None:
@@ -124,14 +128,14 @@ def detection_limits(flat: Flat, model, held: torch.Tensor, w_held: np.ndarray |
     return {"torque_gain": gain, "actuation_delay": delay}
 
 
-def injected_limit(g0: float, se0: float, sigma_r: float, theta0: float) -> float:
+def injected_limit(g0: float, se0: float, sigma_r: float, theta0: float, level: float = 0.05) -> float:
     """The |θ| at which rule 3's own-variation test would just pass, scaled from one injection at θ0 that gave the
     held-out gain g0 with bootstrap SE se0: the gain grows as θ² and its sampling error (2 θ SE(w o ε)) as θ, so
-    with u = (θ/θ0)² the test's bound u g0 = 1.96 √(u se0² + σ_r²) is a quadratic in u. Infinite where the
-    injection itself did not show (g0 ≤ 0)."""
+    with u = (θ/θ0)² the test's bound u g0 = z √(u se0² + σ_r²) is a quadratic in u (z: the normal quantile of the
+    decision's two-sided `level`). Infinite where the injection itself did not show (g0 ≤ 0)."""
     if not (g0 > 0 and np.isfinite(se0)):
         return float("inf")
-    z2 = 1.96 ** 2
+    z2 = float(sps.norm.ppf(1.0 - level / 2.0)) ** 2
     u = (z2 * se0 ** 2 + math.sqrt(z2 ** 2 * se0 ** 4 + 4.0 * g0 ** 2 * z2 * sigma_r ** 2)) / (2.0 * g0 ** 2)
     return theta0 * math.sqrt(u)
 
@@ -148,7 +152,7 @@ class InjectionFits:
 
 def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, sigma_r: float,
                         analytic: dict, gain: bool = True, delay: bool = True,
-                        fits: InjectionFits | None = None) -> dict:
+                        fits: InjectionFits | None = None, level: float = 0.05) -> dict:
     """The torque gain and the actuation delay these data can show, per joint of `analytic`
     (`detection_limits`), measured by injection and recovery instead of computed at the base's present misfit:
     `{"torque_gain": {joint: ...}, "actuation_delay": {joint: ...}}` (a kind not asked for is left empty).
@@ -208,7 +212,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
             if LIBRARY[eff].lag_free:       # a gain shows only on the controller's own variation (rule 3)
                 g, k_hat = on_own_variation(base_i, inj, j, LIBRARY[eff].screen_init(sc), e_ref, held, w, s,
                                               refit_fn=fits.refit)
-                th = fits.injected_limit(g["gain"], g["se"], sigma_r, v)
+                th = fits.injected_limit(g["gain"], g["se"], sigma_r, v, level)
                 k0 = 1.0 / (1.0 - v)
                 res[(eff, j)] = dict(theta_limit=th, k_below=1.0 / (1.0 + th),
                                      k_above=1.0 / (1.0 - th) if th < 1.0 else float("inf"),
@@ -223,7 +227,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
                 # a delay already in the data that the base had absorbed adds to the injected one once the term
                 # is there (docs/DIAGNOSIS.md): the gain is that of the delay the term found, so it scales from
                 # the larger of the two
-                dl = fits.injected_limit(g["gain"], g["se"], sigma_r, max(v, d_hat))
+                dl = fits.injected_limit(g["gain"], g["se"], sigma_r, max(v, d_hat), level)
                 res[(eff, j)] = dict(d_limit=dl, injected_d=v, recovered_d=d_hat,
                                      injected_gain=g["gain"], injected_gain_ci=g["ci"],
                                      passes_at_injection=bool(g["ci"][0] > 0 and above_noise(g, sigma_r)), limit=dl)
@@ -247,13 +251,14 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
     return out
 
 
-def all_limits(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, w_held, sigma_r: float) -> dict:
-    """The detection limits of the exo-driven terms: computed at the base's misfit; measured by injection (refits)
-    only where asked (`Settings.inject_gain`, `inject_delay`)."""
-    limits = detection_limits(flat, ref, held, w_held, sigma_r, s)
+def all_limits(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, w_held, sigma_r: float,
+               level: float) -> dict:
+    """The detection limits of the exo-driven terms at the decision's two-sided `level` (`Budget.single`): computed
+    at the base's misfit; measured by injection (refits) only where asked (`Settings.inject_gain`, `inject_delay`)."""
+    limits = detection_limits(flat, ref, held, w_held, sigma_r, s, level=level)
     if s.inject_gain or s.inject_delay:
         t1 = time.time()
-        measured = limits_by_injection(flat, s, base_start, ref, held, sigma_r, limits, gain=s.inject_gain,
+        measured = limits_by_injection(flat, s, base_start, ref, held, sigma_r, limits, gain=s.inject_gain, level=level,
                                        delay=s.inject_delay)
         for name, v in measured["torque_gain"].items():
             computed = limits["torque_gain"][name]

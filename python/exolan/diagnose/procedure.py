@@ -182,7 +182,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
         return learned
     from . import physics_path
     limits = (learned["report"]["detection_limits"] if learned else
-              all_limits(flat, s, base_start, ref, held, w_held, ss.sigma_r))
+              all_limits(flat, s, base_start, ref, held, w_held, ss.sigma_r, ss.budget.single()))
     return physics_path.report(flat, s, trials, base, ref, base_source, noise, phys, adequate, phys_joints,
                                held, limits, lambda m: log(s, m), learned=learned)
 
@@ -200,7 +200,7 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
     baseline.update(source=base_source, noise_floor=noise)
     structure = R.residual_structure(ss.ref, flat, ss.held)
     step(s, "detection limits")
-    limits = all_limits(flat, s, ss.base_start, ss.ref, ss.held, ss.w_held, ss.sigma_r)
+    limits = all_limits(flat, s, ss.base_start, ss.ref, ss.held, ss.w_held, ss.sigma_r, ss.budget.single())
     log(s, f"{ss.budget.m} candidates: a single-term test at {100 * ss.budget.single():.3g} % (family-wise "
            f"{100 * s.alpha:.3g} %, `settings.Budget`)")
 

@@ -229,6 +229,12 @@ def _ms_cell(d) -> str:
     return "none" if not math.isfinite(float(d)) else _fmt(1e3 * float(d), 3)
 
 
+def _level_text(*limits: dict) -> str:
+    """' (two-sided x %, the single-term test's share of the family-wise level)' from the limits' records."""
+    lv = [v["level"] for lim in limits for v in lim.values() if "level" in v]
+    return f" (two-sided {_fmt(100 * lv[0], 2)} %, the single-term test's share of the family-wise level)" if lv else ""
+
+
 def _limit_lines(limits: dict) -> list[str]:
     """The 'What these data cannot show' section: the torque gain's and the actuation delay's detection limits
     per joint."""
@@ -243,7 +249,8 @@ def _limit_lines(limits: dict) -> list[str]:
          "part of the exo torque that copies the joint torque is absorbed by a base that predicts the joint torque "
          "from the motion (rule 3's own-variation null). A gain acts through that variation, a delay (to first "
          "order) through its rate. Gains between the limits below, and delays shorter than the one below, would "
-         "not clear the sampling and refit noise of these data (an estimate at the base's present misfit, "
+         f"not clear the sampling and refit noise of these data at the level the decision uses{_level_text(gain, delay)} "
+         "(an estimate at the base's present misfit, "
          "optimistic where the base absorbs part of the own variation too; a delay near its limit is also "
          "estimated short; `limits.gain_detection_limit`, `limits.delay_detection_limit`)." +
          (" The gain's limits here are measured, not computed: a known gain was written into the recorded joint "
