@@ -193,6 +193,7 @@ impl Model {
                 return Err(Error::UnexpectedTensor(name.to_string()));
             }
         }
+        let nets_f32 = [Some(net_l.to_f32()), Some(net_v.to_f32()), net_lim.as_ref().map(Mlp::to_f32)];
         Ok(Model {
             meta,
             n,
@@ -201,6 +202,7 @@ impl Model {
             net_l,
             net_v,
             net_lim,
+            nets_f32,
             norm,
             encoder,
             ext,

@@ -10,16 +10,16 @@
 
 use crate::math::{madd, tanh_slice_wide};
 
-/// `y = W x + b` with W (out × inp).
+/// `y = W x + b` with W (out × inp); float64 (`Dense<f32>`: the copy for float32 lane rollouts).
 #[derive(Debug, Clone)]
-pub struct Dense {
+pub struct Dense<T = f64> {
     pub inp: usize,
     pub out: usize,
     /// Transposed weights, `inp * out`.
-    pub wt: Vec<f64>,
+    pub wt: Vec<T>,
     /// Row-major weights, `out * inp` (for the narrow output layers).
-    pub rows: Vec<f64>,
-    pub b: Vec<f64>,
+    pub rows: Vec<T>,
+    pub b: Vec<T>,
 }
 
 impl Dense {
@@ -40,22 +40,36 @@ impl Dense {
     pub fn col(&self, j: usize) -> &[f64] {
         &self.wt[j * self.out..(j + 1) * self.out]
     }
+
+    /// The same layer rounded to float32.
+    pub(crate) fn to_f32(&self) -> Dense<f32> {
+        let f = |v: &[f64]| v.iter().map(|x| *x as f32).collect();
+        Dense { inp: self.inp, out: self.out, wt: f(&self.wt), rows: f(&self.rows), b: f(&self.b) }
+    }
 }
 
 /// A tanh MLP: tanh after every layer but the last.
 #[derive(Debug, Clone)]
-pub struct Mlp {
-    pub layers: Vec<Dense>,
+pub struct Mlp<T = f64> {
+    pub layers: Vec<Dense<T>>,
     /// The first layer's z columns with its bias (`W0[:, split..]`, `b0`), for `z_bias`.
-    pub(crate) z_part: Option<Dense>,
+    pub(crate) z_part: Option<Dense<T>>,
+}
+
+impl<T> Mlp<T> {
+    pub fn d_out(&self) -> usize {
+        self.layers.last().map(|l| l.out).unwrap_or(0)
+    }
 }
 
 impl Mlp {
+    /// The same network rounded to float32.
+    pub(crate) fn to_f32(&self) -> Mlp<f32> {
+        Mlp { layers: self.layers.iter().map(Dense::to_f32).collect(), z_part: self.z_part.as_ref().map(Dense::to_f32) }
+    }
+
     pub fn d_in(&self) -> usize {
         self.layers[0].inp
-    }
-    pub fn d_out(&self) -> usize {
-        self.layers.last().map(|l| l.out).unwrap_or(0)
     }
     /// Buffers for a pass with `nt` blocks: one per layer, `nt * out` each.
     pub fn buffers(&self, nt: usize) -> Vec<Vec<f64>> {

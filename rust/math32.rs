@@ -1,0 +1,202 @@
+//! Elementwise functions of the float32 lane rollouts, branch-free so loops over lanes vectorise,
+//! accurate to float32 rounding (tested against libm in f64):
+//!
+//! - `tanh`: the odd rational minimax approximation of Eigen's `ptanh_float` (|x| clamped at 7.905,
+//!   where tanh rounds to ±1), a few ulp;
+//! - `sin_cos` (joint angles → φ), `softplus_sigmoid` (the diagonal of L): evaluated in f64 from the
+//!   f32 argument (polynomials, no libm call) and rounded once, so < 1 ulp of f32.
+
+use std::f64::consts::{FRAC_2_PI, LN_2};
+
+/// 1.5·2^52: adding it rounds an f64 to an integer (for |x| < 2^51).
+const SHIFTER: f64 = 6_755_399_441_055_744.0;
+/// π/2 in two parts (fdlibm's pio2_1, pio2_1t): k·PIO2_HI is exact for |k| < 2^20.
+const PIO2_HI: f64 = 1.570_796_326_734_125_614_17;
+const PIO2_LO: f64 = 6.077_100_506_506_192_249_32e-11;
+
+const TANH_CLAMP: f32 = 7.905_311;
+const TANH_P: [f32; 7] = [
+    4.893_524_558_917_86e-3,
+    6.372_619_288_754_36e-4,
+    1.485_722_357_179_79e-5,
+    5.122_297_090_371_14e-8,
+    -8.604_671_522_137_35e-11,
+    2.000_187_904_824_77e-13,
+    -2.760_768_477_423_55e-16,
+];
+const TANH_Q: [f32; 4] = [4.893_525_185_543_85e-3, 2.268_434_632_439e-3, 1.185_347_056_866_54e-4, 1.198_258_394_667_02e-6];
+
+#[inline(always)]
+fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// tanh(x) to a few ulp of f32; NaN propagates.
+#[inline(always)]
+pub(crate) fn tanh<const FMA: bool>(x: f32) -> f32 {
+    let x = x.clamp(-TANH_CLAMP, TANH_CLAMP);
+    let x2 = x * x;
+    let mut p = TANH_P[6];
+    for c in TANH_P[..6].iter().rev() {
+        p = madd::<FMA>(p, x2, *c);
+    }
+    let mut q = TANH_Q[3];
+    for c in TANH_Q[..3].iter().rev() {
+        q = madd::<FMA>(q, x2, *c);
+    }
+    x * p / q
+}
+
+/// tanh on block 0 (`width` values) and dh = (1 − h²) da on the nt − 1 tangent blocks after it.
+#[inline(always)]
+pub(crate) fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [f32], width: usize, nt: usize) {
+    let (h, rest) = a[..nt * width].split_at_mut(width);
+    let mut i = 0;
+    #[cfg(target_arch = "x86_64")]
+    if WIDE {
+        i = width - width % 16;
+        // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
+        unsafe { tanh16(&mut h[..i]) };
+    }
+    for x in h[i..].iter_mut() {
+        *x = tanh::<FMA>(*x);
+    }
+    for k in 0..nt - 1 {
+        for (d, hi) in rest[k * width..(k + 1) * width].iter_mut().zip(h.iter()) {
+            *d *= madd::<FMA>(-*hi, *hi, 1.0);
+        }
+    }
+}
+
+/// `tanh` 16 values per instruction, the division replaced by `rcp14` and one Newton step
+/// (relative error 2^-14 → ~2^-28, below f32 rounding); within an ulp or two of `tanh` (tested).
+/// SAFETY (caller): avx512f is available.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+#[inline]
+unsafe fn tanh16(v: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let set = _mm512_set1_ps;
+    for c in v.chunks_exact_mut(16) {
+        // SAFETY: 16 values per chunk.
+        let x = unsafe { _mm512_loadu_ps(c.as_ptr()) };
+        // max/min return their second operand when either is NaN: x second, so NaN propagates
+        let x = _mm512_min_ps(set(TANH_CLAMP), _mm512_max_ps(set(-TANH_CLAMP), x));
+        let x2 = _mm512_mul_ps(x, x);
+        let mut p = set(TANH_P[6]);
+        for k in (0..6).rev() {
+            p = _mm512_fmadd_ps(p, x2, set(TANH_P[k]));
+        }
+        let mut q = set(TANH_Q[3]);
+        for k in (0..3).rev() {
+            q = _mm512_fmadd_ps(q, x2, set(TANH_Q[k]));
+        }
+        let r = _mm512_rcp14_ps(q);
+        let r = _mm512_fmadd_ps(r, _mm512_fnmadd_ps(q, r, set(1.0)), r);
+        unsafe { _mm512_storeu_ps(c.as_mut_ptr(), _mm512_mul_ps(_mm512_mul_ps(x, p), r)) };
+    }
+}
+
+/// (sin x, cos x): x reduced by π/2 in f64, Taylor polynomials on [−π/4, π/4] (truncation < 2e-9);
+/// the quadrant from the low bits of the rounded k, selects instead of branches.
+#[inline(always)]
+pub(crate) fn sin_cos(x: f32) -> (f32, f32) {
+    let x = x as f64;
+    let kf = x * FRAC_2_PI + SHIFTER;
+    let k = kf - SHIFTER;
+    let r = (x - k * PIO2_HI) - k * PIO2_LO;
+    let r2 = r * r;
+    let s = r + r * r2 * (-1.0 / 6.0 + r2 * (1.0 / 120.0 + r2 * (-1.0 / 5040.0 + r2 * (1.0 / 362_880.0))));
+    let c = 1.0 + r2 * (-0.5 + r2 * (1.0 / 24.0 + r2 * (-1.0 / 720.0 + r2 * (1.0 / 40_320.0 + r2 * (-1.0 / 3_628_800.0)))));
+    let quadrant = kf.to_bits() & 3; // k mod 4, also for negative k
+    let (s, c) = if quadrant & 1 != 0 { (c, -s) } else { (s, c) };
+    let (s, c) = if quadrant & 2 != 0 { (-s, -c) } else { (s, c) };
+    (s as f32, c as f32)
+}
+
+/// e^(−a) for a ≥ 0 (a clamped at 100), in f64: 2^k e^r, |r| ≤ ln2/2, Taylor to r^8 (< 3e-10).
+#[inline(always)]
+fn exp_neg(a: f64) -> f64 {
+    let y = -(if a > 100.0 { 100.0 } else { a });
+    let kf = y * std::f64::consts::LOG2_E + SHIFTER;
+    let k = kf - SHIFTER;
+    let r = y - k * LN_2;
+    let mut p = 1.0 / 40_320.0;
+    for c in [1.0 / 5040.0, 1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
+        p = p * r + c;
+    }
+    let k_bits = kf.to_bits().wrapping_sub(SHIFTER.to_bits());
+    f64::from_bits(k_bits.wrapping_add(1023) << 52) * p
+}
+
+/// torch's softplus (x for x > 20, else log(1 + e^x)) and sigmoid(x) = its derivative, from one
+/// e^(−|x|): softplus = max(x, 0) + log1p(e^(−|x|)), log1p(w) = 2 atanh(w / (2 + w)) by its series.
+#[inline(always)]
+pub(crate) fn softplus_sigmoid(x: f32) -> (f32, f32) {
+    let x = x as f64;
+    let w = exp_neg(x.abs());
+    let s = w / (2.0 + w);
+    let s2 = s * s;
+    let mut p = 1.0 / 13.0;
+    for c in [1.0 / 11.0, 1.0 / 9.0, 1.0 / 7.0, 1.0 / 5.0, 1.0 / 3.0, 1.0] {
+        p = p * s2 + c;
+    }
+    let sp = if x > 20.0 { x } else { x.max(0.0) + 2.0 * s * p };
+    let d = 1.0 / (1.0 + w);
+    let sig = if x >= 0.0 { d } else { w * d };
+    (sp as f32, sig as f32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ulps(a: f32, b: f64) -> f64 {
+        (a as f64 - b).abs() / (f32::EPSILON as f64 * b.abs().max(1e-30))
+    }
+
+    #[test]
+    fn float32_functions_match_libm() {
+        let (mut wt, mut ws, mut wp) = (0.0f64, 0.0f64, 0.0f64);
+        let mut x = -30.0f64;
+        while x < 30.0 {
+            for xx in [x, x * 1e-3, x * 1e-6, x * 40.0] {
+                let xf = xx as f32;
+                let x64 = xf as f64;
+                wt = wt.max(ulps(tanh::<true>(xf), x64.tanh())).max(ulps(tanh::<false>(xf), x64.tanh()));
+                let (s, c) = sin_cos(xf);
+                // absolute in units of f32 epsilon: sin/cos near their zeros have no relative scale
+                ws = ws.max((s as f64 - x64.sin()).abs().max((c as f64 - x64.cos()).abs()) / f32::EPSILON as f64);
+                let (sp, sg) = softplus_sigmoid(xf);
+                let want = if x64 > 20.0 { x64 } else { x64.exp().ln_1p() };
+                wp = wp.max(ulps(sp, want)).max(ulps(sg, 1.0 / (1.0 + (-x64).exp())));
+            }
+            x += 0.000_913;
+        }
+        assert!(wt < 4.0, "tanh: {wt} ulp");
+        assert!(ws < 1.0, "sin/cos: {ws} eps absolute");
+        assert!(wp < 1.0, "softplus/sigmoid: {wp} ulp");
+        assert!(tanh::<true>(f32::NAN).is_nan());
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx512f") {
+            let xs: Vec<f32> = (0..4000).map(|i| (i as f32 - 2000.0) * 0.0047).chain([f32::NAN, 9.0, -9.0, 0.0]).chain([0.0; 12]).collect();
+            let mut ys = xs.clone();
+            #[target_feature(enable = "avx512f,avx2,fma")]
+            fn wide(a: &mut [f32]) {
+                tanh_tangent::<true, true>(a, a.len(), 1)
+            }
+            // SAFETY: the CPU has the features.
+            unsafe { wide(&mut ys) };
+            for (x, y) in xs.iter().zip(&ys) {
+                let want = (*x as f64).tanh();
+                assert!(x.is_nan() && y.is_nan() || ulps(*y, want) < 4.0, "tanh16({x}) = {y}, want {want}");
+            }
+        }
+        // saturated: within 4 ulp of ±1 (the rational form ends at 1 − 2.4e-7, not at 1)
+        assert!((tanh::<true>(100.0) - 1.0).abs() <= 2.5e-7 && (tanh::<true>(-100.0) + 1.0).abs() <= 2.5e-7);
+    }
+}
