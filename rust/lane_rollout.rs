@@ -12,7 +12,8 @@
 
 use crate::delan::check_z;
 use crate::error::{Error, Result};
-use crate::lanes::{dense_lanes, net_lanes, supported, LaneBufs};
+use crate::lanes::{dense_lanes, first_lanes, net_lanes, supported, LaneBufs};
+use crate::mlp::Mlp;
 use crate::model::Model;
 use crate::pool::{Chunks, Pool};
 use crate::real::Real;
@@ -35,6 +36,9 @@ pub struct LaneWorkspace<T = f32> {
     out_l: Vec<T>,
     out_v: Vec<T>,
     out_b: Vec<T>,
+    /// V's hidden activations (the reverse pass reads them back) and ∂V/∂φ, [unit][lane].
+    stash: Vec<T>,
+    gphi: Vec<T>,
     /// Per lane: still running, and the error that stopped it.
     active: Vec<bool>,
     status: Vec<Option<Error>>,
@@ -55,6 +59,8 @@ impl<T: Real> LaneWorkspace<T> {
             out_l: v((n + 1) * n * (n + 1) / 2),
             out_v: v(n + 1),
             out_b: v(n),
+            stash: v(m.net_v.layers[..m.net_v.layers.len() - 1].iter().map(|d| d.out).sum()),
+            gphi: v(m.dphi),
             active: vec![false; lanes],
             status: vec![None; lanes],
         }
@@ -275,16 +281,84 @@ fn pass<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: &Model, l
     }
     for (t, net) in T::nets(m).iter().enumerate() {
         let Some(net) = net else { continue };
+        if t == 1 {
+            grad_lanes::<T, L, FMA, WIDE>(m, net, lw);
+            continue;
+        }
+        let s = &mut lw.bufs;
         let ntn = if t == 2 { 1 } else { nt };
         net_lanes::<T, L, FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a, &mut s.b);
-        let dst = match t {
-            0 => &mut lw.out_l,
-            1 => &mut lw.out_v,
-            _ => &mut lw.out_b,
-        };
+        let dst = if t == 0 { &mut lw.out_l } else { &mut lw.out_b };
         let len = dst.len().min(ntn * net.d_out() * L);
         debug_assert!(t != 2 || len == n * L);
         dst[..len].copy_from_slice(&s.a[..len]);
+    }
+}
+
+/// g = ∂V/∂q_k (before v_scale) of every lane into `out_v[(k+1)·L..]` by one reverse pass through V:
+/// the value forward (hidden activations kept in `stash`), then δ back through the transposed layers
+/// (`Mlp::back`) and φ's derivative. It replaces the forward tangents (n extra blocks per hidden layer)
+/// with one transposed product per hidden layer; V itself is not needed for the dynamics.
+#[inline(always)]
+fn grad_lanes<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: &Model, net: &Mlp<T>, lw: &mut LaneWorkspace<T>) {
+    let (s, stash, last) = (&mut lw.bufs, &mut lw.stash, net.layers.len() - 1);
+    let one = T::of(1.0);
+    first_lanes::<T, L, FMA>(&net.layers[0], &s.zb[1], &s.phi, &s.dphi, &m.phi_cols, 1, &mut s.a);
+    let mut off = 0;
+    for l in 0..last {
+        let w = net.layers[l].out * L;
+        T::tanh_tangent::<FMA, WIDE>(&mut s.a, w, 1);
+        stash[off..off + w].copy_from_slice(&s.a[..w]);
+        off += w;
+        if l + 1 < last {
+            dense_lanes::<T, L, FMA, WIDE>(&net.layers[l + 1], 1, &s.a, &mut s.b);
+            std::mem::swap(&mut s.a, &mut s.b);
+        }
+    }
+    // δ at the last hidden layer: the output weights times tanh' = 1 − h²
+    let out = &net.layers[last];
+    off -= out.inp * L;
+    for i in 0..out.inp {
+        // a local copy: with two views into workspace buffers LLVM left this loop scalar (aliasing)
+        let (h, w): ([T; L], T) = (*at::<T, L>(stash, off / L + i), out.rows[i]);
+        let d: &mut [T; L] = (&mut s.a[i * L..(i + 1) * L]).try_into().unwrap();
+        for l in 0..L {
+            d[l] = w * (one - h[l] * h[l]);
+        }
+    }
+    for l in (1..last).rev() {
+        dense_lanes::<T, L, FMA, WIDE>(&net.back[l], 1, &s.a, &mut s.b);
+        off -= net.layers[l - 1].out * L;
+        for i in 0..net.layers[l - 1].out {
+            let h: [T; L] = *at::<T, L>(stash, off / L + i);
+            let d: &mut [T; L] = (&mut s.b[i * L..(i + 1) * L]).try_into().unwrap();
+            for j in 0..L {
+                d[j] = d[j] * (one - h[j] * h[j]);
+            }
+        }
+        std::mem::swap(&mut s.a, &mut s.b);
+    }
+    dense_lanes::<T, L, FMA, WIDE>(&net.back[0], 1, &s.a, &mut lw.gphi);
+    for (k, &(ca, cb)) in m.phi_cols.iter().enumerate() {
+        let (ga, va, vb) = (at::<T, L>(&lw.gphi, ca), at::<T, L>(&s.dphi, 2 * k), at::<T, L>(&s.dphi, 2 * k + 1));
+        let dst: &mut [T; L] = (&mut lw.out_v[(k + 1) * L..(k + 2) * L]).try_into().unwrap();
+        for l in 0..L {
+            dst[l] = ga[l] * va[l];
+        }
+        if cb != usize::MAX {
+            let gb = at::<T, L>(&lw.gphi, cb);
+            for l in 0..L {
+                dst[l] = dst[l] + gb[l] * vb[l];
+            }
+        }
+    }
+}
+
+/// acc += a·b lane by lane (unfused).
+#[inline(always)]
+fn acc<T: Real, const L: usize>(acc: &mut [T; L], a: &[T; L], b: &[T; L]) {
+    for l in 0..L {
+        acc[l] = acc[l] + a[l] * b[l];
     }
 }
 
@@ -304,15 +378,15 @@ fn step_lanes<T: Real, const L: usize>(m: &Model, lw: &mut LaneWorkspace<T>, dt:
     let (mut lm, mut dl, mut h) = ([zero; 9], [zero; 27], [zero; 9]);
     let off = T::of(m.meta.softplus_offset);
     for i in 0..n {
-        let (u, mut sg) = (at::<T, L>(&lw.out_l, i), zero);
+        let (u, mut sg, d) = (at::<T, L>(&lw.out_l, i), zero, &mut lm[i * n + i]);
         for l in 0..L {
             let (sp, s) = u[l].softplus_sigmoid();
-            (lm[i * n + i][l], sg[l]) = (sp + off, s);
+            (d[l], sg[l]) = (sp + off, s);
         }
         for k in 0..n {
-            let du = at::<T, L>(&lw.out_l, (k + 1) * mo + i);
+            let (du, d) = (at::<T, L>(&lw.out_l, (k + 1) * mo + i), &mut dl[k * nn + i * n + i]);
             for l in 0..L {
-                dl[k * nn + i * n + i][l] = sg[l] * du[l];
+                d[l] = sg[l] * du[l];
             }
         }
     }
@@ -330,9 +404,7 @@ fn step_lanes<T: Real, const L: usize>(m: &Model, lw: &mut LaneWorkspace<T>, dt:
         for j in 0..=i {
             let mut s = zero;
             for k in 0..=j {
-                for l in 0..L {
-                    s[l] = s[l] + lm[i * n + k][l] * lm[j * n + k][l];
-                }
+                acc(&mut s, &lm[i * n + k], &lm[j * n + k]);
             }
             (h[i * n + j], h[j * n + i]) = (s, s);
         }
@@ -342,32 +414,27 @@ fn step_lanes<T: Real, const L: usize>(m: &Model, lw: &mut LaneWorkspace<T>, dt:
     let (mut t1, mut t2, mut ld) = ([zero; 3], [zero; 3], [zero; 9]);
     for j in 0..n {
         for i in j..n {
-            for l in 0..L {
-                t1[j][l] = t1[j][l] + lm[i * n + j][l] * qd[i][l];
-            }
+            acc(&mut t1[j], &lm[i * n + j], &qd[i]);
         }
     }
     for e in 0..nn {
         for k in 0..n {
-            for l in 0..L {
-                ld[e][l] = ld[e][l] + dl[k * nn + e][l] * qd[k][l];
-            }
+            acc(&mut ld[e], &dl[k * nn + e], &qd[k]);
         }
     }
     for j in 0..n {
         for i in 0..n {
-            for l in 0..L {
-                t2[j][l] = t2[j][l] + ld[i * n + j][l] * qd[i][l];
-            }
+            acc(&mut t2[j], &ld[i * n + j], &qd[i]);
         }
     }
     let rhs = rhs_lanes::<T, L>(m, lw, &lm, &dl, &ld, &qd, &t1, &t2);
     let qdd = solve_lanes::<T, L>(n, &h, &lm, &rhs, lw);
     let dt = T::of(dt);
     for i in 0..n {
+        let (q, v): (&mut [T; L], &mut [T; L]) = ((&mut lw.q[i * L..(i + 1) * L]).try_into().unwrap(), (&mut lw.qd[i * L..(i + 1) * L]).try_into().unwrap());
         for l in 0..L {
-            let v = qd[i][l] + dt * qdd[i][l];
-            (lw.qd[i * L + l], lw.q[i * L + l]) = (v, lw.q[i * L + l] + dt * v);
+            v[l] = qd[i][l] + dt * qdd[i][l];
+            q[l] = q[l] + dt * v[l];
         }
     }
 }
@@ -385,19 +452,19 @@ fn rhs_lanes<T: Real, const L: usize>(m: &Model, lw: &LaneWorkspace<T>, lm: &[[T
         for j in 0..n {
             let mut w = zero;
             for a in 0..n {
-                for l in 0..L {
-                    w[l] = w[l] + dl[i * nn + a * n + j][l] * qd[a][l];
-                }
+                acc(&mut w, &dl[i * nn + a * n + j], &qd[a]);
             }
+            let (ldij, t1j, lmij, t2j) = (&ld[i * n + j], &t1[j], &lm[i * n + j], &t2[j]);
             for l in 0..L {
-                s[l] = s[l] + ld[i * n + j][l] * t1[j][l] + lm[i * n + j][l] * t2[j][l];
-                d[l] = d[l] + w[l] * t1[j][l];
+                s[l] = s[l] + ldij[l] * t1j[l] + lmij[l] * t2j[l];
+                d[l] = d[l] + w[l] * t1j[l];
             }
         }
         let (gv, bv, tau, fv) = (at::<T, L>(&lw.out_v, i + 1), at::<T, L>(&lw.out_b, i), at::<T, L>(&lw.tau, i), at::<T, L>(&lw.fv, 0));
+        let r = &mut rhs[i];
         for l in 0..L {
             let b = if lim { ls * bv[l] } else { T::default() };
-            rhs[i][l] = tau[l] - ((s[l] - d[l]) + vs * gv[l] - b * fv[l]);
+            r[l] = tau[l] - ((s[l] - d[l]) + vs * gv[l] - b * fv[l]);
         }
     }
     rhs

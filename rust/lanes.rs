@@ -135,6 +135,10 @@ fn gemm_range<T: Real, const L: usize, const NT: usize, const FMA: bool, const W
                 gemm512::<T, L, NT, 8>(d, x, y, i0);
                 i0 += 8;
             }
+            if i0 + 4 <= nb {
+                gemm512::<T, L, NT, 4>(d, x, y, i0);
+                i0 += 4;
+            }
             while i0 < nb {
                 gemm512::<T, L, NT, 1>(d, x, y, i0);
                 i0 += 1;
@@ -183,7 +187,7 @@ pub(crate) fn dense_lanes<T: Real, const L: usize, const FMA: bool, const WIDE: 
 
 /// `delan::first_layer` lane by lane: zb + W0[:, φ] φ and the tangents W0[:, φ] ∂φ/∂q_k.
 #[inline(always)]
-fn first_lanes<T: Real, const L: usize, const FMA: bool>(l0: &Dense<T>, zb: &[T], phi: &[T], dphi: &[T], cols: &[(usize, usize)], nt: usize, a: &mut [T]) {
+pub(crate) fn first_lanes<T: Real, const L: usize, const FMA: bool>(l0: &Dense<T>, zb: &[T], phi: &[T], dphi: &[T], cols: &[(usize, usize)], nt: usize, a: &mut [T]) {
     let h = l0.out;
     let nphi = phi.len() / L;
     for i in 0..h {

@@ -149,7 +149,7 @@ impl Tensors<'_> {
             layers.push(self.dense(&format!("{prefix}.{i}"), out, inp)?);
             inp = out;
         }
-        Ok(Mlp { layers, z_part: None })
+        Ok(Mlp { layers, z_part: None, back: vec![] })
     }
 }
 
@@ -412,7 +412,8 @@ fn load_nets(ts: &mut Tensors, m: &MetaReader, n: usize, dphi: usize, dz: usize,
     let raw = m.0;
     let d_in = dphi + dz;
     let net_l = ts.mlp("delan.L", d_in, n * (n + 1) / 2)?.with_z_part(dphi);
-    let net_v = ts.mlp("delan.V", d_in, 1)?.with_z_part(dphi);
+    // V with its transposed layers: the lane rollouts take g = ∂V/∂q from one reverse pass
+    let net_v = ts.mlp("delan.V", d_in, 1)?.with_z_part(dphi).with_backward(dphi);
     let net_lim = if lim { Some(ts.mlp("lim", d_in, n)?.with_z_part(dphi)) } else { None };
     for (key, net) in [("hidden", Some(&net_l)), ("lim_hidden", net_lim.as_ref())] {
         if let (Some(net), true) = (net, raw.contains_key(key)) {

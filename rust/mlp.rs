@@ -54,6 +54,9 @@ pub struct Mlp<T = f64> {
     pub layers: Vec<Dense<T>>,
     /// The first layer's z columns with its bias (`W0[:, split..]`, `b0`), for `z_bias`.
     pub(crate) z_part: Option<Dense<T>>,
+    /// For a reverse pass (`with_backward`; else empty): Wᵀ of the first layer's φ columns, then of
+    /// the hidden layers 1..last (no bias).
+    pub(crate) back: Vec<Dense<T>>,
 }
 
 impl<T> Mlp<T> {
@@ -65,7 +68,8 @@ impl<T> Mlp<T> {
 impl Mlp {
     /// The same network rounded to float32.
     pub(crate) fn to_f32(&self) -> Mlp<f32> {
-        Mlp { layers: self.layers.iter().map(Dense::to_f32).collect(), z_part: self.z_part.as_ref().map(Dense::to_f32) }
+        let f = |v: &[Dense]| v.iter().map(Dense::to_f32).collect();
+        Mlp { layers: f(&self.layers), z_part: self.z_part.as_ref().map(Dense::to_f32), back: f(&self.back) }
     }
 
     pub fn d_in(&self) -> usize {
@@ -86,6 +90,22 @@ impl Mlp {
             }
             self.z_part = Some(Dense::from_rows(&rows, &l0.b, l0.out, dz));
         }
+        self
+    }
+
+    /// Add the transposed layers of a reverse pass (`back`), the first one restricted to inputs ..split.
+    pub(crate) fn with_backward(mut self, split: usize) -> Mlp {
+        let last = self.layers.len() - 1;
+        self.back = self.layers[..last]
+            .iter()
+            .enumerate()
+            .map(|(l, d)| {
+                let inp = if l == 0 { split } else { d.inp };
+                // Wᵀ (inp × out) from row-major W: its row-major rows are W's columns
+                let rows: Vec<f64> = (0..inp).flat_map(|j| (0..d.out).map(move |i| (i, j))).map(|(i, j)| d.rows[i * d.inp + j]).collect();
+                Dense::from_rows(&rows, &vec![0.0; inp], inp, d.out)
+            })
+            .collect();
         self
     }
 
