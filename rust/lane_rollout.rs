@@ -1,9 +1,10 @@
 //! Lane-major batched rollouts, the opt-in float32 path (`Model::rollout_batch_f32`): groups of
 //! `T::LANES` rollouts (16 at float32, one AVX-512 register) whose whole state lives in SIMD lanes.
-//! Per step: the group's inputs are gathered into lanes, the context layers, φ(q), the L, V and LIM
-//! networks with their q-tangents run over the lanes (the kernels of `lanes.rs`, with the float32
-//! copies of the weights), then each lane's tail (L, H, c, g, B, the solve, semi-implicit Euler) in
-//! `T` arithmetic; the state never leaves the lanes between steps.
+//! Per step: the group's inputs are gathered into lanes, the context layers, φ(q), the L and LIM
+//! networks (L with its q-tangents) run over the lanes (the kernels of `lanes.rs`, with the float32
+//! copies of the weights), g = ∂V/∂q by one reverse pass through V (`grad_lanes`), then the dynamics
+//! tail over all lanes (`lane_tail.rs`: L, H, c, B, the solve, semi-implicit Euler) in `T`
+//! arithmetic; the state never leaves the lanes between steps.
 //!
 //! Unlike the float64 batches (`batch.rs`), a lane is not the same bits as a single rollout: the
 //! float32 result agrees with the float64 path to float32 rounding amplified by the dynamics (tested:
@@ -12,6 +13,7 @@
 
 use crate::delan::check_z;
 use crate::error::{Error, Result};
+use crate::lane_tail::{at, step_lanes};
 use crate::lanes::{dense_lanes, first_lanes, net_lanes, supported, LaneBufs};
 use crate::mlp::Mlp;
 use crate::model::Model;
@@ -24,24 +26,25 @@ use crate::simd::{simd_dispatch, Simd};
 /// [`Model::lane_workspaces`], outside the hot loop.
 #[derive(Debug, Clone)]
 pub struct LaneWorkspace<T = f32> {
-    n: usize,
-    dz: usize,
-    bufs: LaneBufs<T>,
+    pub(crate) n: usize,
+    pub(crate) dz: usize,
+    pub(crate) bufs: LaneBufs<T>,
     /// State, the step's τ and f_v, [joint][lane] / [lane].
-    q: Vec<T>,
-    qd: Vec<T>,
-    tau: Vec<T>,
-    fv: Vec<T>,
-    /// The networks' outputs with tangents: L ([nt·n(n+1)/2][lane]), V ([nt][lane]), LIM ([n][lane]).
-    out_l: Vec<T>,
-    out_v: Vec<T>,
-    out_b: Vec<T>,
+    pub(crate) q: Vec<T>,
+    pub(crate) qd: Vec<T>,
+    pub(crate) tau: Vec<T>,
+    pub(crate) fv: Vec<T>,
+    /// The networks' outputs: L with its q-tangents ([nt·n(n+1)/2][lane]), ∂V/∂q_k at [k+1][lane] (block 0
+    /// unused), LIM ([n][lane]).
+    pub(crate) out_l: Vec<T>,
+    pub(crate) out_v: Vec<T>,
+    pub(crate) out_b: Vec<T>,
     /// V's hidden activations (the reverse pass reads them back) and ∂V/∂φ, [unit][lane].
-    stash: Vec<T>,
-    gphi: Vec<T>,
+    pub(crate) stash: Vec<T>,
+    pub(crate) gphi: Vec<T>,
     /// Per lane: still running, and the error that stopped it.
-    active: Vec<bool>,
-    status: Vec<Option<Error>>,
+    pub(crate) active: Vec<bool>,
+    pub(crate) status: Vec<Option<Error>>,
 }
 
 impl<T: Real> LaneWorkspace<T> {
@@ -106,17 +109,20 @@ impl Model {
     /// `rollout_batch` computed in float32 (inputs and outputs stay float64): B rollouts in groups of
     /// 16 SIMD lanes, `lws` from `lane_workspaces(B)` (or more). The same shapes and errors as
     /// `rollout_batch` (the first failing element decides), plus `Error::Unsupported` for models with
-    /// extension terms or more than 3 joints, and `IllConditioned` beyond cond(H) = 1e6.
+    /// extension terms, more than 3 joints or no hidden layer in V, and `IllConditioned` beyond
+    /// cond(H) = 1e6 (`Real::COND_MAX`).
     #[allow(clippy::too_many_arguments)]
     pub fn rollout_batch_f32(&self, pool: &Pool, lws: &mut [LaneWorkspace], q0: &[f64], qd0: &[f64], inp: Inputs, dt: f64, q_out: &mut [f64], qd_out: &mut [f64]) -> Result<()> {
         self.rollout_lanes(pool, lws, q0, qd0, inp, dt, q_out, qd_out, group_f32_simd)
     }
 
+    /// `rollout_batch_f32` at any `Real` (float64 lanes: the tests' check of the lane algorithm).
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn rollout_lanes<T: Real>(&self, pool: &Pool, lws: &mut [LaneWorkspace<T>], q0: &[f64], qd0: &[f64], inp: Inputs, dt: f64, q_out: &mut [f64], qd_out: &mut [f64], run: GroupFn<T>) -> Result<()> {
         let n = self.n;
-        if !supported(self) || self.ext.any() {
-            return Err(Error::Unsupported("lane (float32) rollouts run models of up to 3 joints without extension terms; use float64".into()));
+        if !supported(self) || self.ext.any() || self.net_v.layers.len() < 2 {
+            let msg = "lane (float32) rollouts run models of up to 3 joints, with a hidden layer in V and without extension terms; use float64";
+            return Err(Error::Unsupported(msg.into()));
         }
         if !q0.len().is_multiple_of(n) {
             return Err(Error::InputShape(format!("q0 has {} values, not B·n with n = {n}", q0.len())));
@@ -190,10 +196,10 @@ fn rollout_group<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: 
         qdo[l * per..l * per + n].copy_from_slice(qd0);
         for i in 0..n {
             (lw.q[i * L + l], lw.qd[i * L + l]) = (T::of(q0[i]), T::of(qd0[i]));
-            if let ZSeq::Const(z) = sub.z {
-                for (j, zj) in z.iter().enumerate() {
-                    lw.bufs.zin[j * L + l] = T::of(*zj);
-                }
+        }
+        if let ZSeq::Const(z) = sub.z {
+            for (j, zj) in z.iter().enumerate() {
+                lw.bufs.zin[j * L + l] = T::of(*zj);
             }
         }
     }
@@ -352,182 +358,6 @@ fn grad_lanes<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: &Mo
             }
         }
     }
-}
-
-/// acc += a·b lane by lane (unfused).
-#[inline(always)]
-fn acc<T: Real, const L: usize>(acc: &mut [T; L], a: &[T; L], b: &[T; L]) {
-    for l in 0..L {
-        acc[l] = acc[l] + a[l] * b[l];
-    }
-}
-
-/// The L rows of lane buffer `buf` at index e ([e][lane] layout).
-#[inline(always)]
-fn at<T: Real, const L: usize>(buf: &[T], e: usize) -> &[T; L] {
-    buf[e * L..(e + 1) * L].try_into().unwrap()
-}
-
-/// q̈ of every lane from the networks' outputs (as `eval_tail` and `forward_after_eval`, in `T`;
-/// each operation over all lanes at once), then semi-implicit Euler on the state. A lane whose H is
-/// ill-conditioned is stopped with its error.
-#[inline(always)]
-fn step_lanes<T: Real, const L: usize>(m: &Model, lw: &mut LaneWorkspace<T>, dt: f64) {
-    let (n, nn, mo) = (m.n, m.n * m.n, m.n * (m.n + 1) / 2);
-    let zero = [T::default(); L];
-    let (mut lm, mut dl, mut h) = ([zero; 9], [zero; 27], [zero; 9]);
-    let off = T::of(m.meta.softplus_offset);
-    for i in 0..n {
-        let (u, mut sg, d) = (at::<T, L>(&lw.out_l, i), zero, &mut lm[i * n + i]);
-        for l in 0..L {
-            let (sp, s) = u[l].softplus_sigmoid();
-            (d[l], sg[l]) = (sp + off, s);
-        }
-        for k in 0..n {
-            let (du, d) = (at::<T, L>(&lw.out_l, (k + 1) * mo + i), &mut dl[k * nn + i * n + i]);
-            for l in 0..L {
-                d[l] = sg[l] * du[l];
-            }
-        }
-    }
-    let mut t = n;
-    for i in 1..n {
-        for j in 0..i {
-            lm[i * n + j] = *at::<T, L>(&lw.out_l, t);
-            for k in 0..n {
-                dl[k * nn + i * n + j] = *at::<T, L>(&lw.out_l, (k + 1) * mo + t);
-            }
-            t += 1;
-        }
-    }
-    for i in 0..n {
-        for j in 0..=i {
-            let mut s = zero;
-            for k in 0..=j {
-                acc(&mut s, &lm[i * n + k], &lm[j * n + k]);
-            }
-            (h[i * n + j], h[j * n + i]) = (s, s);
-        }
-    }
-    let qd: [[T; L]; 3] = std::array::from_fn(|i| if i < n { *at::<T, L>(&lw.qd, i) } else { zero });
-    // Lᵀ q̇ → t1; L̇ → ld; L̇ᵀ q̇ → t2
-    let (mut t1, mut t2, mut ld) = ([zero; 3], [zero; 3], [zero; 9]);
-    for j in 0..n {
-        for i in j..n {
-            acc(&mut t1[j], &lm[i * n + j], &qd[i]);
-        }
-    }
-    for e in 0..nn {
-        for k in 0..n {
-            acc(&mut ld[e], &dl[k * nn + e], &qd[k]);
-        }
-    }
-    for j in 0..n {
-        for i in 0..n {
-            acc(&mut t2[j], &ld[i * n + j], &qd[i]);
-        }
-    }
-    let rhs = rhs_lanes::<T, L>(m, lw, &lm, &dl, &ld, &qd, &t1, &t2);
-    let qdd = solve_lanes::<T, L>(n, &h, &lm, &rhs, lw);
-    let dt = T::of(dt);
-    for i in 0..n {
-        let (q, v): (&mut [T; L], &mut [T; L]) = ((&mut lw.q[i * L..(i + 1) * L]).try_into().unwrap(), (&mut lw.qd[i * L..(i + 1) * L]).try_into().unwrap());
-        for l in 0..L {
-            v[l] = qd[i][l] + dt * qdd[i][l];
-            q[l] = q[l] + dt * v[l];
-        }
-    }
-}
-
-/// τ − (c + g − B f_v) over the lanes, c = L̇ t1 + L t2 − (∂L/∂q_i ᵀ q̇)·t1.
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn rhs_lanes<T: Real, const L: usize>(m: &Model, lw: &LaneWorkspace<T>, lm: &[[T; L]; 9], dl: &[[T; L]; 27], ld: &[[T; L]; 9], qd: &[[T; L]; 3], t1: &[[T; L]; 3], t2: &[[T; L]; 3]) -> [[T; L]; 3] {
-    let (n, nn) = (m.n, m.n * m.n);
-    let zero = [T::default(); L];
-    let (vs, ls, lim) = (T::of(m.meta.v_scale), T::of(m.meta.lim_scale), m.net_lim.is_some());
-    let mut rhs = [zero; 3];
-    for i in 0..n {
-        let (mut s, mut d) = (zero, zero);
-        for j in 0..n {
-            let mut w = zero;
-            for a in 0..n {
-                acc(&mut w, &dl[i * nn + a * n + j], &qd[a]);
-            }
-            let (ldij, t1j, lmij, t2j) = (&ld[i * n + j], &t1[j], &lm[i * n + j], &t2[j]);
-            for l in 0..L {
-                s[l] = s[l] + ldij[l] * t1j[l] + lmij[l] * t2j[l];
-                d[l] = d[l] + w[l] * t1j[l];
-            }
-        }
-        let (gv, bv, tau, fv) = (at::<T, L>(&lw.out_v, i + 1), at::<T, L>(&lw.out_b, i), at::<T, L>(&lw.tau, i), at::<T, L>(&lw.fv, 0));
-        let r = &mut rhs[i];
-        for l in 0..L {
-            let b = if lim { ls * bv[l] } else { T::default() };
-            r[l] = tau[l] - ((s[l] - d[l]) + vs * gv[l] - b * fv[l]);
-        }
-    }
-    rhs
-}
-
-/// H⁻¹ rhs over the lanes as `dynamics::solve` (n = 1, 2 analytic; n = 3 by L); an active lane
-/// beyond `T::COND_MAX` (or with det ≤ 0) is stopped with `IllConditioned`.
-#[inline(always)]
-fn solve_lanes<T: Real, const L: usize>(n: usize, h: &[[T; L]; 9], lm: &[[T; L]; 9], rhs: &[[T; L]; 3], lw: &mut LaneWorkspace<T>) -> [[T; L]; 3] {
-    let (zero, one) = (T::default(), T::of(1.0));
-    let mut out = [[zero; L]; 3];
-    let (mut det, mut cond) = ([zero; L], [0.0f64; L]);
-    match n {
-        1 => {
-            for l in 0..L {
-                (det[l], out[0][l]) = (h[0][l], rhs[0][l] / h[0][l]);
-            }
-        }
-        2 => {
-            let (a, b, d) = (&h[0], &h[1], &h[3]);
-            for l in 0..L {
-                det[l] = a[l] * d[l] - b[l] * b[l];
-                let disc = (T::of(0.25) * (a[l] - d[l]) * (a[l] - d[l]) + b[l] * b[l]).sqrt();
-                let lmax = T::of(0.5) * (a[l] + d[l]) + disc;
-                cond[l] = (lmax / (det[l] / lmax)).to_f64();
-                let inv = one / det[l];
-                out[0][l] = (d[l] * rhs[0][l] - b[l] * rhs[1][l]) * inv;
-                out[1][l] = (a[l] * rhs[1][l] - b[l] * rhs[0][l]) * inv;
-            }
-        }
-        _ => {
-            for l in 0..L {
-                let (mut dmin, mut dmax, mut dt) = (f64::INFINITY, 0.0f64, 1.0f64);
-                for i in 0..n {
-                    let d = lm[i * n + i][l].to_f64();
-                    (dmin, dmax, dt) = (dmin.min(d), dmax.max(d), dt * d * d);
-                }
-                (det[l], cond[l]) = (T::of(dt), if dmin > 0.0 { (dmax / dmin) * (dmax / dmin) } else { f64::INFINITY });
-                for i in 0..n {
-                    let mut s = rhs[i][l];
-                    for k in 0..i {
-                        s = s - lm[i * n + k][l] * out[k][l];
-                    }
-                    out[i][l] = s / lm[i * n + i][l];
-                }
-                for i in (0..n).rev() {
-                    let mut s = out[i][l];
-                    for k in i + 1..n {
-                        s = s - lm[k * n + i][l] * out[k][l];
-                    }
-                    out[i][l] = s / lm[i * n + i][l];
-                }
-            }
-        }
-    }
-    for l in 0..L {
-        let d = det[l].to_f64();
-        if lw.active[l] && (!(d > 0.0) || !d.is_finite() || !(cond[l] <= T::COND_MAX)) {
-            let c = if cond[l].is_finite() && cond[l] > 0.0 { cond[l] } else { f64::INFINITY };
-            (lw.active[l], lw.status[l]) = (false, Some(Error::IllConditioned { det: d, cond: c }));
-        }
-    }
-    out
 }
 
 #[cfg(test)]

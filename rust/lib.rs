@@ -19,6 +19,7 @@ pub mod error;
 pub mod ext;
 mod lanes;
 pub mod lane_rollout;
+mod lane_tail;
 mod math;
 mod math32;
 pub mod mlp;

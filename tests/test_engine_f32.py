@@ -100,3 +100,15 @@ def test_f32_errors_are_clear(model_file, batch, tmp_path):
     eng_ext = Engine(export(ext, tmp_path / "ext.safetensors", {"dt": 0.005}))
     with pytest.raises(ValueError, match="unsupported model: .*extension terms.*use float64"):
         eng_ext.rollout(np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 5, 2)), 0.005, precision="f32")
+
+
+def test_f32_singular_inertia_raises_arithmetic_error(tmp_path):
+    torch.manual_seed(9)
+    m = build_model("delan", lim=False, context_channels=CHANNELS, joint_names=("hip", "knee"),
+                    softplus_offset=0.0).double().eval()
+    with torch.no_grad():
+        m.delan.L[2].weight.zero_()
+        m.delan.L[2].bias.copy_(torch.tensor([0.0, -60.0, 0.0], dtype=torch.float64))
+    eng = Engine(export(m, tmp_path / "s.safetensors"))
+    with pytest.raises(ArithmeticError, match="batch element 0: .*ill-conditioned|ill-conditioned"):
+        eng.rollout(np.zeros((3, 2)), np.zeros((3, 2)), np.ones((3, 4, 2)), 0.005, precision="f32")
