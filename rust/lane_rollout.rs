@@ -14,7 +14,7 @@
 use crate::delan::check_z;
 use crate::error::{Error, Result};
 use crate::lane_tail::{at, step_lanes};
-use crate::lanes::{dense_lanes, first_lanes, net_lanes, supported, LaneBufs};
+use crate::lanes::{dense_lanes, first_lanes, first_tangents, rest_lanes, supported, LaneBufs};
 use crate::mlp::Mlp;
 use crate::model::Model;
 use crate::pool::{Chunks, Pool};
@@ -293,12 +293,29 @@ fn pass<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: &Model, l
         }
         let s = &mut lw.bufs;
         let ntn = if t == 2 { 1 } else { nt };
-        net_lanes::<T, L, FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a, &mut s.b);
+        first::<T, L, FMA, WIDE>(net, &s.zb[t], &s.phi, &s.dphi, &m.phi_cols, ntn, &mut s.a);
+        rest_lanes::<T, L, FMA, WIDE>(net, ntn, &mut s.a, &mut s.b);
         let dst = if t == 0 { &mut lw.out_l } else { &mut lw.out_b };
         let len = dst.len().min(ntn * net.d_out() * L);
         debug_assert!(t != 2 || len == n * L);
         dst[..len].copy_from_slice(&s.a[..len]);
     }
+}
+
+/// Layer 0's pre-activations over the lanes: W0[:, φ] φ as a GEMM (`Mlp::phi_part`) plus the z part
+/// `zb`, then the nt − 1 tangent blocks (`first_tangents`).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn first<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(net: &Mlp<T>, zb: &[T], phi: &[T], dphi: &[T], cols: &[(usize, usize)], nt: usize, a: &mut [T]) {
+    let Some(p) = &net.phi_part else {
+        return first_lanes::<T, L, FMA>(&net.layers[0], zb, phi, dphi, cols, nt, a);
+    };
+    let h = p.out * L;
+    dense_lanes::<T, L, FMA, WIDE>(p, 1, phi, a);
+    for (x, z) in a[..h].iter_mut().zip(&zb[..h]) {
+        *x = *x + *z;
+    }
+    first_tangents::<T, L, FMA>(&net.layers[0], dphi, cols, nt, a);
 }
 
 /// g = ∂V/∂q_k (before v_scale) of every lane into `out_v[(k+1)·L..]` by one reverse pass through V:
@@ -309,7 +326,7 @@ fn pass<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: &Model, l
 fn grad_lanes<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(m: &Model, net: &Mlp<T>, lw: &mut LaneWorkspace<T>) {
     let (s, stash, last) = (&mut lw.bufs, &mut lw.stash, net.layers.len() - 1);
     let one = T::of(1.0);
-    first_lanes::<T, L, FMA>(&net.layers[0], &s.zb[1], &s.phi, &s.dphi, &m.phi_cols, 1, &mut s.a);
+    first::<T, L, FMA, WIDE>(net, &s.zb[1], &s.phi, &s.dphi, &m.phi_cols, 1, &mut s.a);
     let mut off = 0;
     for l in 0..last {
         let w = net.layers[l].out * L;

@@ -201,6 +201,13 @@ pub(crate) fn first_lanes<T: Real, const L: usize, const FMA: bool>(l0: &Dense<T
         }
         a[i * L..(i + 1) * L].copy_from_slice(&acc);
     }
+    first_tangents::<T, L, FMA>(l0, dphi, cols, nt, a);
+}
+
+/// The tangent blocks 1..nt of `first_lanes`: W0[:, φ] ∂φ/∂q_k (one or two columns per joint).
+#[inline(always)]
+pub(crate) fn first_tangents<T: Real, const L: usize, const FMA: bool>(l0: &Dense<T>, dphi: &[T], cols: &[(usize, usize)], nt: usize, a: &mut [T]) {
+    let h = l0.out;
     for k in 0..nt - 1 {
         let (ca, cb) = cols[k];
         let va: &[T; L] = dphi[2 * k * L..(2 * k + 1) * L].try_into().unwrap();
@@ -227,6 +234,12 @@ pub(crate) fn first_lanes<T: Real, const L: usize, const FMA: bool>(l0: &Dense<T
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn net_lanes<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(net: &Mlp<T>, zb: &[T], phi: &[T], dphi: &[T], cols: &[(usize, usize)], nt: usize, a: &mut Vec<T>, b: &mut Vec<T>) {
     first_lanes::<T, L, FMA>(&net.layers[0], zb, phi, dphi, cols, nt, a);
+    rest_lanes::<T, L, FMA, WIDE>(net, nt, a, b);
+}
+
+/// Layers 1.. of a network over the lanes from layer 0's pre-activations (with tangents) in `a`.
+#[inline(always)]
+pub(crate) fn rest_lanes<T: Real, const L: usize, const FMA: bool, const WIDE: bool>(net: &Mlp<T>, nt: usize, a: &mut Vec<T>, b: &mut Vec<T>) {
     for l in 1..net.layers.len() {
         T::tanh_tangent::<FMA, WIDE>(a, net.layers[l - 1].out * L, nt);
         dense_lanes::<T, L, FMA, WIDE>(&net.layers[l], nt, a, b);

@@ -149,7 +149,7 @@ impl Tensors<'_> {
             layers.push(self.dense(&format!("{prefix}.{i}"), out, inp)?);
             inp = out;
         }
-        Ok(Mlp { layers, z_part: None, back: vec![] })
+        Ok(Mlp { layers, z_part: None, phi_part: None, back: vec![] })
     }
 }
 

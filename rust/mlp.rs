@@ -54,6 +54,8 @@ pub struct Mlp<T = f64> {
     pub layers: Vec<Dense<T>>,
     /// The first layer's z columns with its bias (`W0[:, split..]`, `b0`), for `z_bias`.
     pub(crate) z_part: Option<Dense<T>>,
+    /// The first layer's φ columns (`W0[:, ..split]`, no bias), for the float32 lanes' φ part as a GEMM.
+    pub(crate) phi_part: Option<Dense<T>>,
     /// For a reverse pass (`with_backward`; else empty): Wᵀ of the first layer's φ columns, then of
     /// the hidden layers 1..last (no bias).
     pub(crate) back: Vec<Dense<T>>,
@@ -69,7 +71,8 @@ impl Mlp {
     /// The same network rounded to float32.
     pub(crate) fn to_f32(&self) -> Mlp<f32> {
         let f = |v: &[Dense]| v.iter().map(Dense::to_f32).collect();
-        Mlp { layers: f(&self.layers), z_part: self.z_part.as_ref().map(Dense::to_f32), back: f(&self.back) }
+        let g = |d: &Option<Dense>| d.as_ref().map(Dense::to_f32);
+        Mlp { layers: f(&self.layers), z_part: g(&self.z_part), phi_part: g(&self.phi_part), back: f(&self.back) }
     }
 
     pub fn d_in(&self) -> usize {
@@ -90,6 +93,8 @@ impl Mlp {
             }
             self.z_part = Some(Dense::from_rows(&rows, &l0.b, l0.out, dz));
         }
+        let rows: Vec<f64> = (0..l0.out).flat_map(|i| l0.rows[i * l0.inp..i * l0.inp + split].iter().copied()).collect();
+        self.phi_part = Some(Dense::from_rows(&rows, &vec![0.0; l0.out], l0.out, split));
         self
     }
 
