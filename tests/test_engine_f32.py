@@ -12,7 +12,8 @@ from exolan.models import build_model
 from exolan.rollout import rollout as torch_rollout
 
 CHANNELS = ["q_hip", "q_knee", "qd_hip", "qd_knee", "f_v", "cop_x", "cop_z"]
-# measured on this model: ~4e-7 against the float64 engine, ~1e-6 against torch float32
+# measured on this model: 3.4e-7 against the float64 engine and against torch float32 (torch float32 itself
+# is 3.1e-7 from the float64 engine)
 RTOL = 1e-4
 
 
