@@ -6,6 +6,9 @@
 //! - `sin_cos` (joint angles → φ), `softplus_sigmoid` (the diagonal of L): f32 polynomials with the
 //!   argument reduced in parts, a few ulp.
 
+// the published constants (Eigen, cephes) as written, rounded to f32 by the compiler
+#![allow(clippy::excessive_precision)]
+
 /// 1.5·2^23: adding it rounds an f32 to an integer (for |x| < 2^22), held in the low mantissa bits.
 const SHIFTER32: f32 = 12_582_912.0;
 /// π/2 in three parts (cephes' sinf DP1..3, doubled): k·PIO2_1 is exact for |k| < 2^16.
