@@ -6,6 +6,10 @@
 //! Each lane performs exactly the operations of `delan::eval` on its own sample, in the same order
 //! (every block output's sum over the inputs in order as `mlp::block`, the last `out % 4` outputs'
 //! 8 partial sums and tree as `mlp::narrow`, the same tanh), so its results are the same bits.
+//!
+//! The kernels (GEMM, first layer, narrow outputs, network) are generic over [`Real`] with the lane count
+//! L as a const parameter: float64 here (L = `LANES` = 8), float32 in the lane rollouts
+//! (`lane_rollout.rs`, L = 16). The group pass over workspaces (`eval_lanes`) is float64 only.
 
 use crate::delan::{eval_tail, Workspace};
 use crate::mlp::{Dense, Mlp};
