@@ -5,7 +5,7 @@ LIM 2x16, TCN 5x16; random init, float64 unless stated).
 
 Single sample: the Rust engine's own cost (timed inside Rust, `Engine.time_hot`), the same call through the
 Python binding, and torch eager (`model.inverse` etc. on one sample, no_grad). Batched: open-loop rollouts of
-B x T steps, Rust (rayon, `threads` threads) vs torch batched (exolan.rollout.rollout, the analytic forward-mode
+B x T steps, Rust (`threads` threads; float64, and float32 with `precision="f32"`) vs torch batched (exolan.rollout.rollout, the analytic forward-mode
 derivative path, torch.set_num_threads(threads)). Every figure is the minimum over repeats (the machine may be
 shared; the minimum is the least disturbed run), and the script prints the ratios.
 """
@@ -101,6 +101,8 @@ def main(argv=None) -> dict:
     zs = rng.normal(size=(B, H, 16)) * 0.5
     fvs = rng.uniform(0, 600, size=(B, H))
     rust_b = best_of(lambda: eng.rollout(q0, qd0, tau, 0.005, z=zs, f_v=fvs, threads=a.threads), R, 1)
+    rust_b32 = best_of(lambda: eng.rollout(q0, qd0, tau, 0.005, z=zs, f_v=fvs, threads=a.threads, precision="f32"),
+                       R, 1)
     args64 = [T(x) for x in (q0, qd0, tau)] + [0.005, T(zs), T(fvs)]
     with torch.no_grad():
         torch_b64 = best_of(lambda: torch_rollout(model, *args64), R, 1)
@@ -109,9 +111,9 @@ def main(argv=None) -> dict:
         args32 = [T(x).float() for x in (q0, qd0, tau)] + [0.005, T(zs).float(), T(fvs).float()]
         torch_b32 = best_of(lambda: torch_rollout(m32, *args32), R, 1)
     steps = B * H
-    res["batched"] = dict(rust_s=rust_b, torch64_s=torch_b64, torch32_s=torch_b32,
-                          rust_steps_per_s=steps / rust_b, torch64_steps_per_s=steps / torch_b64,
-                          torch32_steps_per_s=steps / torch_b32)
+    res["batched"] = dict(rust_s=rust_b, rust_f32_s=rust_b32, torch64_s=torch_b64, torch32_s=torch_b32,
+                          rust_steps_per_s=steps / rust_b, rust_f32_steps_per_s=steps / rust_b32,
+                          torch64_steps_per_s=steps / torch_b64, torch32_steps_per_s=steps / torch_b32)
 
     # --- report ---------------------------------------------------------------------------------
     us = lambda s: f"{s * 1e6:10.2f} µs"
@@ -126,9 +128,12 @@ def main(argv=None) -> dict:
           f"torch float64 {b['torch64_steps_per_s'] / 1e6:.3f} M steps/s, torch float32 "
           f"{b['torch32_steps_per_s'] / 1e6:.3f} M steps/s  ->  Rust/torch64 {b['torch64_s'] / b['rust_s']:.1f}x, "
           f"Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x")
+    print(f"batched rollouts, Rust precision=\"f32\": {b['rust_f32_steps_per_s'] / 1e6:.3f} M steps/s  ->  "
+          f"Rust f32/torch32 {b['torch32_s'] / b['rust_f32_s']:.1f}x, Rust f32/Rust f64 {b['rust_s'] / b['rust_f32_s']:.1f}x")
     inv, py1 = single["inverse"]["rust_native"], single["inverse"]["rust_python"]
     print(f"issue #39 targets: inverse native {inv * 1e6:.2f} µs (≤ 1.5), via Python {py1 * 1e6:.2f} µs (≤ 5), "
-          f"batched Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x (≥ 5)")
+          f"batched Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x (f64), "
+          f"{b['torch32_s'] / b['rust_f32_s']:.1f}x (f32) (≥ 5)")
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=2) + "\n")
     return res

@@ -1,6 +1,6 @@
 //! Criterion benchmarks of the engine on the paper's ExoLaN size (hip + knee, DeLaN 2x64, LIM 2x16,
 //! TCN 5x16 or LSTM 5x16), random weights in the export format:
-//! inverse dynamics, forward dynamics, rollout step, encoder step, batched rollouts.
+//! inverse dynamics, forward dynamics, rollout step, encoder step, batched rollouts (float64 and float32).
 //!
 //!     cargo bench --no-default-features --bench engine
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
@@ -82,6 +82,9 @@ fn bench_batched(c: &mut Criterion) {
         let pool = exolan::Pool::new(threads).unwrap();
         g.bench_function(BenchmarkId::new("B256 x T20 per-step z", format!("{threads} threads")), |b| {
             b.iter(|| setup.run(&m, &pool).unwrap())
+        });
+        g.bench_function(BenchmarkId::new("B256 x T20 per-step z, f32", format!("{threads} threads")), |b| {
+            b.iter(|| setup.run_f32(&m, &pool).unwrap())
         });
     }
     g.finish();

@@ -81,11 +81,15 @@ fn main() {
         let fvb = vec![100.0; bsz * th];
         let mut wss: Vec<exolan::Workspace> = (0..bsz).map(|_| m.workspace()).collect();
         let (mut qb, mut qdb) = (vec![0.0; bsz * (th + 1) * 2], vec![0.0; bsz * (th + 1) * 2]);
+        let mut lws = m.lane_workspaces(bsz);
         for threads in [1, 2] {
             let pool = exolan::Pool::new(threads).unwrap();
+            let inp = Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None };
             time(&format!("batched 256x20, {threads} thr (÷5120)"), 1, || {
-                m.rollout_batch(&pool, &mut wss, &q0, &q0, Inputs { tau: &taub, z: ZSeq::PerStep(&zb), f_v: Some(&fvb), tau_e: None }, 0.005, &mut qb, &mut qdb)
-                    .unwrap()
+                m.rollout_batch(&pool, &mut wss, &q0, &q0, inp, 0.005, &mut qb, &mut qdb).unwrap()
+            });
+            time(&format!("batched 256x20 f32, {threads} thr (÷5120)"), 1, || {
+                m.rollout_batch_f32(&pool, &mut lws, &q0, &q0, inp, 0.005, &mut qb, &mut qdb).unwrap()
             });
         }
     }

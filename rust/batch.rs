@@ -17,7 +17,7 @@ fn row(x: &[f64], i: usize, n: usize) -> &[f64] {
 }
 
 /// Name the batch element in its input errors (numeric errors keep their own message).
-fn in_element(b: usize, e: Error) -> Error {
+pub(crate) fn in_element(b: usize, e: Error) -> Error {
     match e {
         Error::InputShape(m) => Error::InputShape(format!("batch element {b}: {m}")),
         Error::NonFiniteInput(m) => Error::NonFiniteInput(format!("batch element {b}: {m}")),
@@ -264,7 +264,7 @@ impl Model {
     }
 
     /// The batch shapes of `rollout_batch`; returns T.
-    fn check_batch(&self, bsz: usize, q0: &[f64], qd0: &[f64], inp: &Inputs, q_out: &[f64], qd_out: &[f64]) -> Result<usize> {
+    pub(crate) fn check_batch(&self, bsz: usize, q0: &[f64], qd0: &[f64], inp: &Inputs, q_out: &[f64], qd_out: &[f64]) -> Result<usize> {
         let (n, dz) = (self.n, self.dz);
         if q0.len() != bsz * n || qd0.len() != bsz * n {
             return Err(Error::InputShape(format!("q0 and qd0 must hold B·n = {} values", bsz * n)));

@@ -77,7 +77,7 @@ pub struct Workspace {
     /// Outcome of the last batched task run in this workspace.
     pub(crate) status: Option<Error>,
     /// Scratch of a batched group led by this workspace (`lanes.rs`).
-    pub(crate) lanes: LaneBufs,
+    pub(crate) lanes: LaneBufs<f64>,
 }
 
 impl Workspace {
@@ -131,12 +131,7 @@ impl Workspace {
     /// Set the context z: the first layers' z contributions (W_z z + b) are computed here, once,
     /// and reused by every call until the next `set_z`. A z equal (bitwise) to the current one is free.
     pub fn set_z(&mut self, m: &Model, z: &[f64]) -> Result<()> {
-        if z.len() != m.dz {
-            return Err(Error::InputShape(format!("z has {} entries, the model's z_dim is {}", z.len(), m.dz)));
-        }
-        if z.iter().any(|x| !x.is_finite()) {
-            return Err(Error::NonFiniteInput("z".into()));
-        }
+        check_z(m, z)?;
         if self.z_ready && self.z.iter().zip(z).all(|(a, b)| a.to_bits() == b.to_bits()) {
             return Ok(());
         }
@@ -172,6 +167,17 @@ impl Workspace {
     pub fn potential(&self) -> f64 {
         self.v
     }
+}
+
+/// A context z's length and finiteness.
+pub(crate) fn check_z(m: &Model, z: &[f64]) -> Result<()> {
+    if z.len() != m.dz {
+        return Err(Error::InputShape(format!("z has {} entries, the model's z_dim is {}", z.len(), m.dz)));
+    }
+    if z.iter().any(|x| !x.is_finite()) {
+        return Err(Error::NonFiniteInput("z".into()));
+    }
+    Ok(())
 }
 
 #[inline(always)]

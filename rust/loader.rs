@@ -149,7 +149,7 @@ impl Tensors<'_> {
             layers.push(self.dense(&format!("{prefix}.{i}"), out, inp)?);
             inp = out;
         }
-        Ok(Mlp { layers, z_part: None })
+        Ok(Mlp { layers, z_part: None, phi_part: None, back: vec![] })
     }
 }
 
@@ -193,6 +193,7 @@ impl Model {
                 return Err(Error::UnexpectedTensor(name.to_string()));
             }
         }
+        let nets_f32 = [Some(net_l.to_f32()), Some(net_v.to_f32()), net_lim.as_ref().map(Mlp::to_f32)];
         Ok(Model {
             meta,
             n,
@@ -201,6 +202,7 @@ impl Model {
             net_l,
             net_v,
             net_lim,
+            nets_f32,
             norm,
             encoder,
             ext,
@@ -410,7 +412,8 @@ fn load_nets(ts: &mut Tensors, m: &MetaReader, n: usize, dphi: usize, dz: usize,
     let raw = m.0;
     let d_in = dphi + dz;
     let net_l = ts.mlp("delan.L", d_in, n * (n + 1) / 2)?.with_z_part(dphi);
-    let net_v = ts.mlp("delan.V", d_in, 1)?.with_z_part(dphi);
+    // V with its transposed layers: the lane rollouts take g = ∂V/∂q from one reverse pass
+    let net_v = ts.mlp("delan.V", d_in, 1)?.with_z_part(dphi).with_backward(dphi);
     let net_lim = if lim { Some(ts.mlp("lim", d_in, n)?.with_z_part(dphi)) } else { None };
     for (key, net) in [("hidden", Some(&net_l)), ("lim_hidden", net_lim.as_ref())] {
         if let (Some(net), true) = (net, raw.contains_key(key)) {

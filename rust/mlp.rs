@@ -10,16 +10,16 @@
 
 use crate::math::{madd, tanh_slice_wide};
 
-/// `y = W x + b` with W (out × inp).
+/// `y = W x + b` with W (out × inp); float64 (`Dense<f32>`: the copy for float32 lane rollouts).
 #[derive(Debug, Clone)]
-pub struct Dense {
+pub struct Dense<T = f64> {
     pub inp: usize,
     pub out: usize,
     /// Transposed weights, `inp * out`.
-    pub wt: Vec<f64>,
+    pub wt: Vec<T>,
     /// Row-major weights, `out * inp` (for the narrow output layers).
-    pub rows: Vec<f64>,
-    pub b: Vec<f64>,
+    pub rows: Vec<T>,
+    pub b: Vec<T>,
 }
 
 impl Dense {
@@ -40,22 +40,43 @@ impl Dense {
     pub fn col(&self, j: usize) -> &[f64] {
         &self.wt[j * self.out..(j + 1) * self.out]
     }
+
+    /// The same layer rounded to float32.
+    pub(crate) fn to_f32(&self) -> Dense<f32> {
+        let f = |v: &[f64]| v.iter().map(|x| *x as f32).collect();
+        Dense { inp: self.inp, out: self.out, wt: f(&self.wt), rows: f(&self.rows), b: f(&self.b) }
+    }
 }
 
 /// A tanh MLP: tanh after every layer but the last.
 #[derive(Debug, Clone)]
-pub struct Mlp {
-    pub layers: Vec<Dense>,
+pub struct Mlp<T = f64> {
+    pub layers: Vec<Dense<T>>,
     /// The first layer's z columns with its bias (`W0[:, split..]`, `b0`), for `z_bias`.
-    pub(crate) z_part: Option<Dense>,
+    pub(crate) z_part: Option<Dense<T>>,
+    /// The first layer's φ columns (`W0[:, ..split]`, no bias), for the float32 lanes' φ part as a GEMM.
+    pub(crate) phi_part: Option<Dense<T>>,
+    /// For a reverse pass (`with_backward`; else empty): Wᵀ of the first layer's φ columns, then of
+    /// the hidden layers 1..last (no bias).
+    pub(crate) back: Vec<Dense<T>>,
+}
+
+impl<T> Mlp<T> {
+    pub fn d_out(&self) -> usize {
+        self.layers.last().map(|l| l.out).unwrap_or(0)
+    }
 }
 
 impl Mlp {
+    /// The same network rounded to float32.
+    pub(crate) fn to_f32(&self) -> Mlp<f32> {
+        let f = |v: &[Dense]| v.iter().map(Dense::to_f32).collect();
+        let g = |d: &Option<Dense>| d.as_ref().map(Dense::to_f32);
+        Mlp { layers: f(&self.layers), z_part: g(&self.z_part), phi_part: g(&self.phi_part), back: f(&self.back) }
+    }
+
     pub fn d_in(&self) -> usize {
         self.layers[0].inp
-    }
-    pub fn d_out(&self) -> usize {
-        self.layers.last().map(|l| l.out).unwrap_or(0)
     }
     /// Buffers for a pass with `nt` blocks: one per layer, `nt * out` each.
     pub fn buffers(&self, nt: usize) -> Vec<Vec<f64>> {
@@ -72,6 +93,24 @@ impl Mlp {
             }
             self.z_part = Some(Dense::from_rows(&rows, &l0.b, l0.out, dz));
         }
+        let rows: Vec<f64> = (0..l0.out).flat_map(|i| l0.rows[i * l0.inp..i * l0.inp + split].iter().copied()).collect();
+        self.phi_part = Some(Dense::from_rows(&rows, &vec![0.0; l0.out], l0.out, split));
+        self
+    }
+
+    /// Add the transposed layers of a reverse pass (`back`), the first one restricted to inputs ..split.
+    pub(crate) fn with_backward(mut self, split: usize) -> Mlp {
+        let last = self.layers.len() - 1;
+        self.back = self.layers[..last]
+            .iter()
+            .enumerate()
+            .map(|(l, d)| {
+                let inp = if l == 0 { split } else { d.inp };
+                // Wᵀ (inp × out) from row-major W: its row-major rows are W's columns
+                let rows: Vec<f64> = (0..inp).flat_map(|j| (0..d.out).map(move |i| (i, j))).map(|(i, j)| d.rows[i * d.inp + j]).collect();
+                Dense::from_rows(&rows, &vec![0.0; inp], inp, d.out)
+            })
+            .collect();
         self
     }
 

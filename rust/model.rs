@@ -62,6 +62,8 @@ pub struct Model {
     pub(crate) net_l: Mlp,
     pub(crate) net_v: Mlp,
     pub(crate) net_lim: Option<Mlp>,
+    /// L, V, LIM rounded to float32, for the float32 lane rollouts (`lane_rollout.rs`).
+    pub(crate) nets_f32: [Option<Mlp<f32>>; 3],
     pub(crate) norm: Option<Norm>,
     pub(crate) encoder: Option<Encoder>,
     pub(crate) ext: Ext,

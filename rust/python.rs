@@ -17,7 +17,7 @@ use pyo3::types::PyDict;
 use crate::python_conv::{bad, expect_shape, one, one_scalar, pool_for, rows, samples, scale_in_place, sum, to_py, view};
 use crate::rollout::delayed_into;
 use crate::batch::Samples;
-use crate::{EncoderKind, Inputs, JointType, Model, Workspace, ZSeq};
+use crate::{EncoderKind, Inputs, JointType, LaneWorkspace, Model, Workspace, ZSeq};
 
 type ArrayPair<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
 
@@ -32,6 +32,8 @@ struct Engine {
     ws: Mutex<Workspace>,
     /// Workspaces of batch calls, kept between calls (a concurrent second call makes its own).
     batch: Mutex<Vec<Workspace>>,
+    /// The float32 rollouts' lane workspaces, kept likewise.
+    lanes: Mutex<Vec<LaneWorkspace>>,
 }
 
 impl Engine {
@@ -50,6 +52,21 @@ impl Engine {
                 f(&mut kept[..count])
             }
             Err(_) => f(&mut (0..count).map(|_| self.model.workspace()).collect::<Vec<_>>()),
+        }
+    }
+
+    /// `f` on the lane workspaces of a float32 batch of `bsz` rollouts, kept or (while another call
+    /// holds them) fresh, as `with_workspaces`.
+    fn with_lanes<T>(&self, bsz: usize, f: impl FnOnce(&mut [LaneWorkspace]) -> T) -> T {
+        match self.lanes.try_lock() {
+            Ok(mut kept) => {
+                let want = self.model.lane_workspaces(bsz).len();
+                if kept.len() < want {
+                    *kept = self.model.lane_workspaces(bsz);
+                }
+                f(&mut kept)
+            }
+            Err(_) => f(&mut self.model.lane_workspaces(bsz)),
         }
     }
 
@@ -138,7 +155,7 @@ impl Engine {
     fn new(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
         let model = py.detach(|| Model::load(&path)).map_err(to_py)?;
         let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws, batch: Mutex::new(vec![]) })
+        Ok(Engine { model, ws, batch: Mutex::new(vec![]), lanes: Mutex::new(vec![]) })
     }
 
     /// Load from the bytes of a weight file.
@@ -146,7 +163,7 @@ impl Engine {
     fn from_bytes(data: &[u8]) -> PyResult<Self> {
         let model = Model::from_bytes(data).map_err(to_py)?;
         let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws, batch: Mutex::new(vec![]) })
+        Ok(Engine { model, ws, batch: Mutex::new(vec![]), lanes: Mutex::new(vec![]) })
     }
 
     #[getter]
@@ -347,8 +364,9 @@ impl Engine {
     }
 
     /// Batched rollouts: q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz), f_v (B, T),
-    /// tau_e (B, T, n); `threads` (None: one per core). Returns flat q and qd, each B·(T+1)·n.
-    #[pyo3(signature = (q0, qd0, tau, dt, z=None, f_v=None, tau_e=None, threads=None))]
+    /// tau_e (B, T, n); `threads` (None: one per core); `precision` "f64" (bit-exact) or "f32"
+    /// (`rollout_batch_f32`). Returns flat q and qd, each B·(T+1)·n.
+    #[pyo3(signature = (q0, qd0, tau, dt, z=None, f_v=None, tau_e=None, threads=None, precision="f64"))]
     #[allow(clippy::too_many_arguments)]
     fn rollout<'py>(
         &self,
@@ -361,8 +379,14 @@ impl Engine {
         f_v: Option<PyReadonlyArrayDyn<'py, f64>>,
         tau_e: Option<PyReadonlyArrayDyn<'py, f64>>,
         threads: Option<usize>,
+        precision: &str,
     ) -> PyResult<ArrayPair<'py>> {
         let m = &self.model;
+        let f32 = match precision {
+            "f64" => false,
+            "f32" => true,
+            other => return Err(bad(format!("precision must be \"f64\" or \"f32\", got {other:?}"))),
+        };
         let (n, dz) = (m.n, m.dz);
         let (s, q0) = view("q0", &q0)?;
         let b = samples("q0", &s, n)?;
@@ -397,7 +421,9 @@ impl Engine {
         let pool = pool_for(if b == 1 { Some(1) } else { threads })?;
         py.detach(|| {
             let inp = Inputs { tau, z: zs, f_v, tau_e };
-            if b == 1 {
+            if f32 {
+                self.with_lanes(b, |lws| m.rollout_batch_f32(&pool, lws, q0, qd0, inp, dt, &mut q, &mut qd))
+            } else if b == 1 {
                 let mut ws = self.ws();
                 if dz == 0 {
                     ws.set_z(m, &[])?;

@@ -85,6 +85,25 @@ impl Model {
         qd_out: &mut [f64],
     ) -> Result<usize> {
         let n = self.n;
+        let t_len = self.check_rollout(q0, qd0, inp, dt, [q_out.len(), qd_out.len()])?;
+        if let ZSeq::Const(z) = inp.z {
+            ws.set_z(self, z)?;
+        }
+        if !ws.z_ready && !matches!(inp.z, ZSeq::PerStep(_)) {
+            return Err(Error::InputShape(format!("context z (dimension {}) not set", self.dz)));
+        }
+        if ws.n != n {
+            return Err(Error::InputShape("workspace was made for a different model".into()));
+        }
+        q_out[..n].copy_from_slice(q0);
+        qd_out[..n].copy_from_slice(qd0);
+        Ok(t_len)
+    }
+
+    /// The checks of one rollout's inputs (a constant z is checked where it is set) and its outputs'
+    /// lengths; returns T.
+    pub(crate) fn check_rollout(&self, q0: &[f64], qd0: &[f64], inp: &Inputs, dt: f64, out_lens: [usize; 2]) -> Result<usize> {
+        let n = self.n;
         check("q0", q0, n)?;
         check("qd0", qd0, n)?;
         if !(dt.is_finite() && dt > 0.0) {
@@ -94,7 +113,7 @@ impl Model {
             return Err(Error::InputShape(format!("tau has {} values, not a multiple of n = {n}", inp.tau.len())));
         }
         let t_len = inp.tau.len() / n;
-        if q_out.len() != (t_len + 1) * n || qd_out.len() != (t_len + 1) * n {
+        if out_lens != [(t_len + 1) * n; 2] {
             return Err(Error::InputShape(format!("outputs must hold (T+1)·n = {} values", (t_len + 1) * n)));
         }
         if inp.tau.iter().any(|v| !v.is_finite()) {
@@ -116,26 +135,14 @@ impl Model {
                 return Err(Error::NonFiniteInput("tau_e".into()));
             }
         }
-        match inp.z {
-            ZSeq::Keep => {}
-            ZSeq::Const(z) => ws.set_z(self, z)?,
-            ZSeq::PerStep(z) => {
-                if z.len() != t_len * self.dz {
-                    return Err(Error::InputShape(format!("z has {} values, expected T·dz = {}", z.len(), t_len * self.dz)));
-                }
-                if z.iter().any(|v| !v.is_finite()) {
-                    return Err(Error::NonFiniteInput("z".into()));
-                }
+        if let ZSeq::PerStep(z) = inp.z {
+            if z.len() != t_len * self.dz {
+                return Err(Error::InputShape(format!("z has {} values, expected T·dz = {}", z.len(), t_len * self.dz)));
+            }
+            if z.iter().any(|v| !v.is_finite()) {
+                return Err(Error::NonFiniteInput("z".into()));
             }
         }
-        if !ws.z_ready && !matches!(inp.z, ZSeq::PerStep(_)) {
-            return Err(Error::InputShape(format!("context z (dimension {}) not set", self.dz)));
-        }
-        if ws.n != n {
-            return Err(Error::InputShape("workspace was made for a different model".into()));
-        }
-        q_out[..n].copy_from_slice(q0);
-        qd_out[..n].copy_from_slice(qd0);
         Ok(t_len)
     }
 

@@ -6,7 +6,7 @@ use std::collections::HashMap;
 
 use safetensors::tensor::{Dtype, TensorView};
 
-use crate::{Inputs, Model, Pool, Result, Workspace, ZSeq};
+use crate::{Inputs, LaneWorkspace, Model, Pool, Result, Workspace, ZSeq};
 
 /// What to generate.
 #[derive(Debug, Clone)]
@@ -196,7 +196,8 @@ fn canonical(file: Vec<u8>) -> Vec<u8> {
 }
 
 /// The batched-rollout set-up of the benchmarks and profilers: B rollouts of T steps from q0 = q̇0 with
-/// per-step z (smooth deterministic inputs), one workspace per element, the outputs.
+/// per-step z (smooth deterministic inputs), one workspace per element (and the float32 path's lane
+/// workspaces), the outputs.
 #[derive(Debug)]
 pub struct BatchSetup {
     pub q0: Vec<f64>,
@@ -204,6 +205,7 @@ pub struct BatchSetup {
     pub z: Vec<f64>,
     pub f_v: Vec<f64>,
     pub wss: Vec<Workspace>,
+    pub lws: Vec<LaneWorkspace>,
     pub q: Vec<f64>,
     pub qd: Vec<f64>,
 }
@@ -217,6 +219,7 @@ impl BatchSetup {
             z: (0..bsz * t_len * dz).map(|i| (i as f64 * 0.013).sin()).collect(),
             f_v: (0..bsz * t_len).map(|i| 200.0 + (i as f64).sin()).collect(),
             wss: (0..bsz).map(|_| m.workspace()).collect(),
+            lws: m.lane_workspaces(bsz),
             q: vec![0.0; bsz * (t_len + 1) * n],
             qd: vec![0.0; bsz * (t_len + 1) * n],
         }
@@ -226,5 +229,11 @@ impl BatchSetup {
     pub fn run(&mut self, m: &Model, pool: &Pool) -> Result<()> {
         let inp = Inputs { tau: &self.tau, z: ZSeq::PerStep(&self.z), f_v: Some(&self.f_v), tau_e: None };
         m.rollout_batch(pool, &mut self.wss, &self.q0, &self.q0, inp, 0.005, &mut self.q, &mut self.qd)
+    }
+
+    /// The same batch in float32 (`rollout_batch_f32`).
+    pub fn run_f32(&mut self, m: &Model, pool: &Pool) -> Result<()> {
+        let inp = Inputs { tau: &self.tau, z: ZSeq::PerStep(&self.z), f_v: Some(&self.f_v), tau_e: None };
+        m.rollout_batch_f32(pool, &mut self.lws, &self.q0, &self.q0, inp, 0.005, &mut self.q, &mut self.qd)
     }
 }

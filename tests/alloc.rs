@@ -1,6 +1,7 @@
 //! After loading, no hot call allocates: a counting global allocator watches every allocation made on
 //! the engine's threads (the test thread and the engine pool's workers) while the engine runs inverse/forward
-//! dynamics, terms, set_z, rollouts (single and batched on an `exolan::Pool`) and the streaming encoders.
+//! dynamics, terms, set_z, rollouts (single and batched on an `exolan::Pool`, float64 and float32 lanes) and
+//! the streaming encoders.
 //! `scripts/alloc_stress.sh` runs it 20 times with a busy loop on every core beside it.
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -141,6 +142,13 @@ fn hot_calls_do_not_allocate() {
         let xb = vec![0.2; bsz * 10 * m.context_dim()];
         let mut zob = vec![0.0; bsz * 10 * m.dz];
         let mut sample_wss: Vec<Workspace> = (0..3).map(|_| m.workspace()).collect();
+        // float32 lane rollouts (not for extension terms: refused, and the error allocates its message);
+        // 20 elements: a full group of 16 and a partial one, per-step z
+        let lanes32 = name != "extensions";
+        let mut lws = m.lane_workspaces(20);
+        let (q0l, taul, zl, fvl) = (vec![0.1; 20 * n], vec![1.0; 20 * t_len * n], vec![0.1; 20 * t_len * m.dz], vec![50.0; 20 * t_len]);
+        let (mut qol, mut qdol) = (vec![0.0; 20 * (t_len + 1) * n], vec![0.0; 20 * (t_len + 1) * n]);
+        let zl_seq = if m.dz > 0 { ZSeq::PerStep(&zl) } else { ZSeq::Keep };
         let mut tau_many = vec![0.0; 20 * n];
         // no warm-up of the pool: its first batch must not allocate either
         ws.set_z(&m, &z2).unwrap();
@@ -159,6 +167,10 @@ fn hot_calls_do_not_allocate() {
                 let _ = m.energy(&mut ws, &q, &qd).unwrap();
                 // 100 batches: rayon's injector allocated a block every 63 jobs from outside its pool
                 batch(&mut wss, &mut qob, &mut qdob);
+                if lanes32 {
+                    let inp = Inputs { tau: &taul, z: zl_seq, f_v: Some(&fvl), tau_e: None };
+                    m.rollout_batch_f32(&pool, &mut lws, &q0l, &q0l, inp, 0.005, &mut qol, &mut qdol).unwrap();
+                }
                 if m.dz > 0 {
                     m.encode_batch(&pool, &mut states, &xb, &mut zob).unwrap();
                     for w in sample_wss.iter_mut() {

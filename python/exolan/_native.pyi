@@ -93,8 +93,10 @@ class Engine:
         f_v: _F64 | None = None,
         tau_e: _F64 | None = None,
         threads: int | None = None,
+        precision: str = "f64",
     ) -> tuple[_F64, _F64]:
-        """q and qd, each flat (B·(T+1)·n,), from q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz)."""
+        """q and qd, each flat (B·(T+1)·n,), from q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz);
+        precision "f64" (bit-exact) or "f32" (float32 lanes)."""
     def encode(self, x: _F64) -> _F64:
         """z, flat (B·T·dz,), streamed from zero state over x (B, T, C)."""
     def time_hot(self, op: str, per_batch: int = 200, batches: int = 100) -> float:
