@@ -9,6 +9,8 @@
 // the published constants (Eigen, cephes) as written, rounded to f32 by the compiler
 #![allow(clippy::excessive_precision)]
 
+use crate::real::Real;
+
 /// 1.5·2^23: adding it rounds an f32 to an integer (for |x| < 2^22), held in the low mantissa bits.
 const SHIFTER32: f32 = 12_582_912.0;
 /// π/2 in three parts (cephes' sinf DP1..3, doubled): k·PIO2_1 is exact for |k| < 2^16.
@@ -33,11 +35,7 @@ const TANH_Q: [f32; 4] = [4.893_525_185_543_85e-3, 2.268_434_632_439e-3, 1.185_3
 
 #[inline(always)]
 fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
-    if FMA {
-        a.mul_add(b, c)
-    } else {
-        a * b + c
-    }
+    <f32 as Real>::madd::<FMA>(a, b, c)
 }
 
 /// tanh(x) to a few ulp of f32; NaN propagates.

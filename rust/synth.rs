@@ -64,6 +64,11 @@ impl Rng {
     }
 }
 
+/// `count` deterministic pseudo-random values uniform in (−scale, scale): inputs for tests and benchmarks.
+pub fn pseudo(seed: u64, count: usize, scale: f64) -> Vec<f64> {
+    Rng(seed).uniform(count, scale)
+}
+
 /// Serialised safetensors bytes of a random model following DESIGN.md section 3.
 pub fn random_weights(cfg: &SynthConfig) -> Vec<u8> {
     let mut rng = Rng(cfg.seed);

@@ -2,7 +2,7 @@
 //! derivatives against finite differences, inverse ∘ forward = identity, H symmetric positive
 //! definite, energy conservation, bit-identical batches across thread counts, clear errors.
 
-use exolan::synth::{random_weights, SynthConfig};
+use exolan::synth::{pseudo, random_weights, SynthConfig};
 use exolan::{Error, Inputs, Model, Workspace, ZSeq};
 
 fn model(cfg: &SynthConfig) -> Model {
@@ -20,16 +20,6 @@ fn configs() -> Vec<SynthConfig> {
         SynthConfig { joint_types: vec!["revolute", "prismatic", "revolute"], seed: 5, ..d.clone() },
         SynthConfig { joint_types: vec!["prismatic"], encoder: "none", seed: 6, ..d },
     ]
-}
-
-fn pseudo(seed: u64, count: usize, scale: f64) -> Vec<f64> {
-    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-    (0..count)
-        .map(|_| {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * scale
-        })
-        .collect()
 }
 
 fn ws_with_z(m: &Model, seed: u64) -> Workspace {

@@ -1,21 +1,11 @@
 //! The float32 lane rollouts (`Model::rollout_batch_f32`) against the float64 batches: agreement to
 //! float32 rounding over 20 steps, determinism across runs and thread counts, lane independence, errors.
 
-use exolan::synth::{random_weights, SynthConfig};
+use exolan::synth::{pseudo, random_weights, SynthConfig};
 use exolan::{Error, Inputs, LaneWorkspace, Model, Pool, Simd, Workspace, ZSeq};
 
 fn model(cfg: &SynthConfig) -> Model {
     Model::from_bytes(&random_weights(cfg)).expect("synthetic model loads")
-}
-
-fn pseudo(seed: u64, count: usize, scale: f64) -> Vec<f64> {
-    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-    (0..count)
-        .map(|_| {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * scale
-        })
-        .collect()
 }
 
 /// A batch's inputs (B = 37: two full groups of 16 and a partial one; T = 20).
