@@ -122,29 +122,34 @@ class Engine:
 
     # -- dynamics ----------------------------------------------------------------------------------
     def inverse_dynamics(self, q, qd, qdd, z=None, f_v=None, tau_e=None, tau_app=None, tau_app_d=None,
-                         tau_app_dd=None) -> np.ndarray:
+                         tau_app_dd=None, precision="f64") -> np.ndarray:
         """τ = H q̈ + c + g − B f_v (+ extension terms): the predicted recorded total torque, (..., n).
 
         tau_e: recorded exo torque (..., n) for the extension terms; tau_app = τ_e(t − d) (see
-        `applied_exo`), tau_app_d/_dd its time derivatives (strap compliance)."""
-        if tau_e is None and tau_app is None and tau_app_d is None and tau_app_dd is None:
+        `applied_exo`), tau_app_d/_dd its time derivatives (strap compliance). `precision="f32"`: one
+        sample (n,) computed in float32 (float64 in and out; models without extension terms)."""
+        if _single_precision(precision, tau_e, tau_app, tau_app_d, tau_app_dd):
             try:  # one plain float64 sample: the native fast path (TypeError: anything else)
-                return self._e.inverse_dynamics_one(q, qd, qdd, z, f_v)
+                return self._e.inverse_dynamics_one(q, qd, qdd, z, f_v, precision)
             except TypeError:
-                pass
+                if precision == "f32":
+                    raise ValueError('precision="f32" takes one plain sample: q, qd, qdd of shape (n,), '
+                                     'z (dz,), f_v a number') from None
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(qdd, "qdd", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead),
                 self._opt(tau_app_d, "tau_app_d", lead), self._opt(tau_app_dd, "tau_app_dd", lead))
         return self._e.inverse_dynamics(*args).reshape(lead + (self.n,))
 
-    def forward_dynamics(self, q, qd, tau, z=None, f_v=None, tau_e=None, tau_app=None) -> np.ndarray:
-        """q̈ = H⁻¹(τ + B f_v − c − g − extension terms), (..., n)."""
-        if tau_e is None and tau_app is None:
+    def forward_dynamics(self, q, qd, tau, z=None, f_v=None, tau_e=None, tau_app=None, precision="f64") -> np.ndarray:
+        """q̈ = H⁻¹(τ + B f_v − c − g − extension terms), (..., n); `precision` as `inverse_dynamics`."""
+        if _single_precision(precision, tau_e, tau_app):
             try:
-                return self._e.forward_dynamics_one(q, qd, tau, z, f_v)
+                return self._e.forward_dynamics_one(q, qd, tau, z, f_v, precision)
             except TypeError:
-                pass
+                if precision == "f32":
+                    raise ValueError('precision="f32" takes one plain sample: q, qd, tau of shape (n,), '
+                                     'z (dz,), f_v a number') from None
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(tau, "tau", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead))
@@ -168,7 +173,8 @@ class Engine:
         `threads` threads (default: one per core, the engine's own pool); the result is bit-identical
         for every thread count. `precision="f32"` computes in float32, 16 rollouts per SIMD register
         (inputs and outputs stay float64; agrees with "f64" to ~1e-6 relative over 20 steps on random
-        models; models without extension terms only; docs/ENGINE.md)."""
+        models; models without extension terms only; docs/ENGINE.md); unbatched, or B = 1, it runs the
+        float32 single-sample pass with the state integrated in float64."""
         n, dz = self.n, self.z_dim
         q0 = _f64(q0, "q0")
         batched = q0.ndim == 2
@@ -242,6 +248,15 @@ def _engine(model) -> Engine:
     if eng is None:
         eng = _CACHE[key] = Engine(p)
     return eng
+
+
+def _single_precision(precision, *exo) -> bool:
+    """Whether to try the single-sample native path; "f32" only there (no exo torques), else ValueError."""
+    if precision not in ("f64", "f32"):
+        raise ValueError(f'precision must be "f64" or "f32", got {precision!r}')
+    if precision == "f32" and any(x is not None for x in exo):
+        raise ValueError('precision="f32" does not take exo torques (models with extension terms need "f64")')
+    return all(x is None for x in exo)
 
 
 def fast_rollout(model, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None, threads=None, precision="f64"):
