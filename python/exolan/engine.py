@@ -128,13 +128,13 @@ class Engine:
         tau_e: recorded exo torque (..., n) for the extension terms; tau_app = τ_e(t − d) (see
         `applied_exo`), tau_app_d/_dd its time derivatives (strap compliance). `precision="f32"`: one
         sample (n,) computed in float32 (float64 in and out; models without extension terms)."""
-        if _single_precision(precision, tau_e, tau_app, tau_app_d, tau_app_dd):
-            try:  # one plain float64 sample: the native fast path (TypeError: anything else)
+        if tau_e is None and tau_app is None and tau_app_d is None and tau_app_dd is None:
+            try:  # one plain float64 sample: the native fast path (TypeError: anything else; ValueError: precision)
                 return self._e.inverse_dynamics_one(q, qd, qdd, z, f_v, precision)
             except TypeError:
-                if precision == "f32":
-                    raise ValueError('precision="f32" takes one plain sample: q, qd, qdd of shape (n,), '
-                                     'z (dz,), f_v a number') from None
+                _only_f64(precision, "q, qd, qdd")
+        else:
+            _only_f64(precision, None)
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(qdd, "qdd", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead),
@@ -143,13 +143,13 @@ class Engine:
 
     def forward_dynamics(self, q, qd, tau, z=None, f_v=None, tau_e=None, tau_app=None, precision="f64") -> np.ndarray:
         """q̈ = H⁻¹(τ + B f_v − c − g − extension terms), (..., n); `precision` as `inverse_dynamics`."""
-        if _single_precision(precision, tau_e, tau_app):
+        if tau_e is None and tau_app is None:
             try:
                 return self._e.forward_dynamics_one(q, qd, tau, z, f_v, precision)
             except TypeError:
-                if precision == "f32":
-                    raise ValueError('precision="f32" takes one plain sample: q, qd, tau of shape (n,), '
-                                     'z (dz,), f_v a number') from None
+                _only_f64(precision, "q, qd, tau")
+        else:
+            _only_f64(precision, None)
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(tau, "tau", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead))
@@ -250,13 +250,15 @@ def _engine(model) -> Engine:
     return eng
 
 
-def _single_precision(precision, *exo) -> bool:
-    """Whether to try the single-sample native path; "f32" only there (no exo torques), else ValueError."""
-    if precision not in ("f64", "f32"):
+def _only_f64(precision, args) -> None:
+    """The batch path (several samples, or exo torques) runs float64 only: ValueError for anything else."""
+    if precision == "f64":
+        return
+    if precision != "f32":
         raise ValueError(f'precision must be "f64" or "f32", got {precision!r}')
-    if precision == "f32" and any(x is not None for x in exo):
+    if args is None:
         raise ValueError('precision="f32" does not take exo torques (models with extension terms need "f64")')
-    return all(x is None for x in exo)
+    raise ValueError(f'precision="f32" takes one plain sample: {args} of shape (n,), z (dz,), f_v a number')
 
 
 def fast_rollout(model, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None, threads=None, precision="f64"):
