@@ -76,6 +76,7 @@ fn f32_single_calls_agree_with_f64() {
 }
 
 /// A 20-step rollout's inputs for `m`.
+#[allow(clippy::type_complexity)]
 fn rollout_inputs(m: &Model) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
     let (t_len, n) = (20, m.n);
     let f_v = pseudo(5, t_len, 300.0).iter().map(|f| f.abs()).collect();
