@@ -78,6 +78,11 @@ def main(argv=None) -> dict:
         rust_python=best_of(lambda: eng.forward_dynamics(q, qd, qdd, z, fv), R, 200),
     )
     single["rollout_step"] = dict(rust_native=eng.time_hot("rollout_step", 1, 100))
+    # the opt-in float32 single-sample path (precision="f32")
+    single32 = dict(inverse=eng.time_hot("inverse_f32", 200, 100), forward=eng.time_hot("forward_f32", 200, 100),
+                    rollout_step=eng.time_hot("rollout_step_f32", 1, 100),
+                    inverse_python=best_of(lambda: eng.inverse_dynamics(q[0], qd[0], qdd[0], z[0], fv[0],
+                                                                        precision="f32"), R, 200))
     single["encode_step"] = dict(rust_native=eng.time_hot("encode_step", 200, 100))
     with torch.no_grad():
         single["inverse"]["torch_eager"] = best_of(lambda: model.inverse(tq, tqd, tqdd, tz, tfv), R, 20)
@@ -93,6 +98,7 @@ def main(argv=None) -> dict:
         xw = T(rng.normal(size=(1, 63, 7)))
         single["encode_step"]["torch_eager"] = best_of(lambda: model.context(xw)[:, -1], R, 10)
     res["single"] = single
+    res["single_f32"] = single32
 
     # --- batched rollouts ---------------------------------------------------------------------
     B, H = a.batch, a.horizon
@@ -130,6 +136,9 @@ def main(argv=None) -> dict:
           f"Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x")
     print(f"batched rollouts, Rust precision=\"f32\": {b['rust_f32_steps_per_s'] / 1e6:.3f} M steps/s  ->  "
           f"Rust f32/torch32 {b['torch32_s'] / b['rust_f32_s']:.1f}x, Rust f32/Rust f64 {b['rust_s'] / b['rust_f32_s']:.1f}x")
+    print("single sample, precision=\"f32\", Rust native: " + ", ".join(
+        f"{k} {v * 1e6:.2f} µs" for k, v in single32.items() if k != "inverse_python")
+        + f"; inverse via Python {single32['inverse_python'] * 1e6:.2f} µs")
     inv, py1 = single["inverse"]["rust_native"], single["inverse"]["rust_python"]
     print(f"issue #39 targets: inverse native {inv * 1e6:.2f} µs (≤ 1.5), via Python {py1 * 1e6:.2f} µs (≤ 5), "
           f"batched Rust/torch32 {b['torch32_s'] / b['rust_s']:.1f}x (f64), "

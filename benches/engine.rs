@@ -1,6 +1,7 @@
 //! Criterion benchmarks of the engine on the paper's ExoLaN size (hip + knee, DeLaN 2x64, LIM 2x16,
 //! TCN 5x16 or LSTM 5x16), random weights in the export format:
-//! inverse dynamics, forward dynamics, rollout step, encoder step, batched rollouts (float64 and float32).
+//! inverse dynamics and forward dynamics (float64 and float32), rollout step, encoder step, batched rollouts
+//! (float64 and float32).
 //!
 //!     cargo bench --no-default-features --bench engine
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
@@ -28,6 +29,14 @@ fn bench_dynamics(c: &mut Criterion) {
         b.iter(|| m.forward_dynamics(&mut ws, black_box(&q), black_box(&qd), black_box(&tau), black_box(250.0), None, &mut out).unwrap())
     });
     c.bench_function("terms", |b| b.iter(|| m.terms(&mut ws, black_box(&q), black_box(&qd)).unwrap()));
+    let mut ws32 = m.workspace_f32();
+    ws32.set_z(&m, &z).unwrap();
+    c.bench_function("inverse_dynamics_f32", |b| {
+        b.iter(|| m.inverse_dynamics_f32(&mut ws32, black_box(&q), black_box(&qd), black_box(&qdd), black_box(250.0), &mut out).unwrap())
+    });
+    c.bench_function("forward_dynamics_f32", |b| {
+        b.iter(|| m.forward_dynamics_f32(&mut ws32, black_box(&q), black_box(&qd), black_box(&tau), black_box(250.0), &mut out).unwrap())
+    });
     let z2: Vec<f64> = z.iter().map(|v| v + 1e-3).collect();
     let mut flip = false;
     c.bench_function("set_z (first-layer z contribution)", |b| {
@@ -57,6 +66,13 @@ fn bench_rollout(c: &mut Criterion) {
             })
         });
     }
+    let mut ws32 = m.workspace_f32();
+    g.bench_function(BenchmarkId::new("200 steps, f32", "const z"), |b| {
+        b.iter(|| {
+            let inp = Inputs { tau: &tau, z: ZSeq::Const(&z_const), f_v: Some(&f_v), tau_e: None };
+            m.rollout_f32(&mut ws32, &[0.2, 0.5], &[0.0, 0.0], inp, 0.005, &mut q, &mut qd).unwrap()
+        })
+    });
     g.finish();
 }
 

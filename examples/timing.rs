@@ -59,6 +59,14 @@ fn main() {
         time("forward dynamics", 100, || {
             m.forward_dynamics(&mut ws, black_box(&q), black_box(&qd), black_box(&qdd), 250.0, None, &mut out).unwrap()
         });
+        let mut ws32 = m.workspace_f32();
+        ws32.set_z(&m, &z).unwrap();
+        time("inverse dynamics, f32", 100, || {
+            m.inverse_dynamics_f32(&mut ws32, black_box(&q), black_box(&qd), black_box(&qdd), 250.0, &mut out).unwrap()
+        });
+        time("forward dynamics, f32", 100, || {
+            m.forward_dynamics_f32(&mut ws32, black_box(&q), black_box(&qd), black_box(&qdd), 250.0, &mut out).unwrap()
+        });
         let t_len = 200;
         let tau: Vec<f64> = (0..t_len * 2).map(|i| ((i as f64) * 0.05).sin() * 5.0).collect();
         let f_v = vec![300.0; t_len];
@@ -67,6 +75,10 @@ fn main() {
         time("rollout, 200 steps (÷200 = per step)", 1, || {
             m.rollout(&mut ws, &[0.2, 0.5], &[0.0, 0.0], Inputs { tau: &tau, z: ZSeq::Const(&zc), f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)
                 .unwrap();
+        });
+        time("rollout, 200 steps, f32 (÷200)", 1, || {
+            let inp = Inputs { tau: &tau, z: ZSeq::Const(&zc), f_v: Some(&f_v), tau_e: None };
+            m.rollout_f32(&mut ws32, &[0.2, 0.5], &[0.0, 0.0], inp, 0.005, &mut qo, &mut qdo).unwrap();
         });
         let zs: Vec<f64> = (0..t_len * 16).map(|i| (i as f64 * 0.01).sin()).collect();
         time("rollout, 200 steps, per-step z (÷200)", 1, || {

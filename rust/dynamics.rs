@@ -1,7 +1,8 @@
 //! The public per-sample calls on a [`Model`]: terms, energy, inverse and forward dynamics (with the
 //! extension terms), and the solve H⁻¹ rhs. The network pass itself is `delan.rs`.
 
-use crate::delan::{eval_dispatch, ExoTorque, Workspace, COND_MAX};
+use crate::delan::{eval_dispatch, ExoTorque, Workspace};
+use crate::real::Real;
 use crate::error::{Error, Result};
 use crate::model::Model;
 
@@ -16,12 +17,13 @@ pub(crate) fn check(name: &str, x: &[f64], n: usize) -> Result<()> {
 }
 
 /// H⁻¹ rhs. n = 2: the analytic inverse of the 2×2 matrix; general n: forward and back
-/// substitution with L (H = L Lᵀ is already a Cholesky factorisation).
-pub(crate) fn solve(n: usize, h: &[f64], l: &[f64], rhs: &[f64], out: &mut [f64]) -> Result<()> {
+/// substitution with L (H = L Lᵀ is already a Cholesky factorisation). Refused beyond `T::COND_MAX`.
+pub(crate) fn solve<T: Real>(n: usize, h: &[T], l: &[T], rhs: &[T], out: &mut [T]) -> Result<()> {
+    let (zero, cmax) = (T::default(), T::COND_MAX);
     if n == 1 {
         let det = h[0];
-        if !(det > 0.0) || !det.is_finite() {
-            return Err(Error::IllConditioned { det, cond: f64::INFINITY });
+        if !(det > zero) || !det.to_f64().is_finite() {
+            return Err(Error::IllConditioned { det: det.to_f64(), cond: f64::INFINITY });
         }
         out[0] = rhs[0] / det;
         return Ok(());
@@ -29,42 +31,42 @@ pub(crate) fn solve(n: usize, h: &[f64], l: &[f64], rhs: &[f64], out: &mut [f64]
     if n == 2 {
         let (a, b, d) = (h[0], h[1], h[3]);
         let det = a * d - b * b;
-        let half_tr = 0.5 * (a + d);
-        let disc = (0.25 * (a - d) * (a - d) + b * b).sqrt();
+        let half_tr = T::of(0.5) * (a + d);
+        let disc = (T::of(0.25) * (a - d) * (a - d) + b * b).sqrt();
         let lmax = half_tr + disc;
         let lmin = det / lmax; // product of eigenvalues = det (no cancellation)
-        let cond = lmax / lmin;
-        if !(det > 0.0) || !(lmin > 0.0) || !(cond <= COND_MAX) || !det.is_finite() {
-            return Err(Error::IllConditioned { det, cond: if cond.is_finite() && cond > 0.0 { cond } else { f64::INFINITY } });
+        let cond = (lmax / lmin).to_f64();
+        if !(det > zero) || !(lmin > zero) || !(cond <= cmax) || !det.to_f64().is_finite() {
+            return Err(Error::IllConditioned { det: det.to_f64(), cond: if cond.is_finite() && cond > 0.0 { cond } else { f64::INFINITY } });
         }
-        let inv = 1.0 / det;
+        let inv = T::of(1.0) / det;
         out[0] = (d * rhs[0] - b * rhs[1]) * inv;
         out[1] = (a * rhs[1] - b * rhs[0]) * inv;
         return Ok(());
     }
-    let (mut dmin, mut dmax, mut det) = (f64::INFINITY, 0.0f64, 1.0);
+    let (mut dmin, mut dmax, mut det) = (T::of(f64::INFINITY), zero, T::of(1.0));
     for i in 0..n {
         let d = l[i * n + i];
         dmin = dmin.min(d);
         dmax = dmax.max(d);
-        det *= d * d;
+        det = det * (d * d);
     }
     // (max L_ii / min L_ii)² is a lower bound of cond(H).
-    let cond = (dmax / dmin) * (dmax / dmin);
-    if !(dmin > 0.0) || !(cond <= COND_MAX) || !det.is_finite() {
-        return Err(Error::IllConditioned { det, cond });
+    let cond = ((dmax / dmin) * (dmax / dmin)).to_f64();
+    if !(dmin > zero) || !(cond <= cmax) || !det.to_f64().is_finite() {
+        return Err(Error::IllConditioned { det: det.to_f64(), cond });
     }
     for i in 0..n {
         let mut s = rhs[i];
         for k in 0..i {
-            s -= l[i * n + k] * out[k];
+            s = s - l[i * n + k] * out[k];
         }
         out[i] = s / l[i * n + i];
     }
     for i in (0..n).rev() {
         let mut s = out[i];
         for k in i + 1..n {
-            s -= l[k * n + i] * out[k];
+            s = s - l[k * n + i] * out[k];
         }
         out[i] = s / l[i * n + i];
     }

@@ -232,17 +232,17 @@ fn step<const FMA: bool, const WIDE: bool>(enc: &Encoder, st: &mut EncoderState,
                 let (cin, cout, slots, pos, k) = (blk.cin, blk.cout, s.slots, s.pos, blk.kernel);
                 s.ring1[pos * cin..(pos + 1) * cin].copy_from_slice(x);
                 gather(&s.ring1, slots, pos, blk.dil, k, cin, &mut s.stack);
-                dense::<FMA, WIDE>(&blk.conv1, 1, &s.stack, &mut s.h1);
+                dense::<f64, FMA, WIDE>(&blk.conv1, 1, &s.stack, &mut s.h1);
                 for v in s.h1.iter_mut() {
                     *v = v.max(0.0);
                 }
                 s.ring2[pos * cout..(pos + 1) * cout].copy_from_slice(&s.h1);
                 gather(&s.ring2, slots, pos, blk.dil, k, cout, &mut s.stack);
-                dense::<FMA, WIDE>(&blk.conv2, 1, &s.stack, &mut s.y);
+                dense::<f64, FMA, WIDE>(&blk.conv2, 1, &s.stack, &mut s.y);
                 // y = relu(relu(conv2) + res(x))
                 let r: &[f64] = match &blk.res {
                     Some(res) => {
-                        dense::<FMA, WIDE>(res, 1, x, &mut s.r);
+                        dense::<f64, FMA, WIDE>(res, 1, x, &mut s.r);
                         &s.r
                     }
                     None => x,
@@ -265,7 +265,7 @@ fn step<const FMA: bool, const WIDE: bool>(enc: &Encoder, st: &mut EncoderState,
                 }
                 st.xin[inp..inp + hd].copy_from_slice(&st.lstm_h[k]);
                 let gates = &mut st.gates[..4 * hd];
-                dense::<FMA, WIDE>(&layer.cell, 1, &st.xin[..inp + hd], gates);
+                dense::<f64, FMA, WIDE>(&layer.cell, 1, &st.xin[..inp + hd], gates);
                 // gate order i, f, g, o
                 let (ifg, rest) = gates.split_at_mut(2 * hd);
                 let (g, o) = rest.split_at_mut(hd);

@@ -29,6 +29,7 @@ pub mod pool;
 mod real;
 pub mod rollout;
 pub mod simd;
+mod single_f32;
 pub mod synth;
 pub mod timing;
 

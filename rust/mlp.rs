@@ -8,7 +8,8 @@
 //! outputs — independent accumulators, which vectorise without reassociating any sum; the order of
 //! every floating-point operation is fixed, so results are bit-identical run to run.
 
-use crate::math::{madd, tanh_slice_wide};
+use crate::math::tanh_slice_wide;
+use crate::real::Real;
 
 /// `y = W x + b` with W (out × inp); float64 (`Dense<f32>`: the copy for float32 lane rollouts).
 #[derive(Debug, Clone)]
@@ -35,12 +36,6 @@ impl Dense {
         Dense { inp, out, wt, rows: w.to_vec(), b: b.to_vec() }
     }
 
-    /// Column j of W (all outputs' weights for input j).
-    #[inline(always)]
-    pub fn col(&self, j: usize) -> &[f64] {
-        &self.wt[j * self.out..(j + 1) * self.out]
-    }
-
     /// The same layer rounded to float32.
     pub(crate) fn to_f32(&self) -> Dense<f32> {
         let f = |v: &[f64]| v.iter().map(|x| *x as f32).collect();
@@ -61,9 +56,32 @@ pub struct Mlp<T = f64> {
     pub(crate) back: Vec<Dense<T>>,
 }
 
+impl<T> Dense<T> {
+    /// Column j of W (all outputs' weights for input j).
+    #[inline(always)]
+    pub fn col(&self, j: usize) -> &[T] {
+        &self.wt[j * self.out..(j + 1) * self.out]
+    }
+}
+
 impl<T> Mlp<T> {
     pub fn d_out(&self) -> usize {
         self.layers.last().map(|l| l.out).unwrap_or(0)
+    }
+}
+
+impl<T: Real> Mlp<T> {
+    /// `b0 + W0[:, split..] z` with the SIMD kernel (bits may differ from `z_bias` in the last place).
+    #[inline(always)]
+    pub(crate) fn z_bias_fast<const FMA: bool, const WIDE: bool>(&self, z: &[T], zb: &mut [T]) {
+        match &self.z_part {
+            Some(d) => dense::<T, FMA, WIDE>(d, 1, z, zb),
+            None => zb.copy_from_slice(&self.layers[0].b),
+        }
+    }
+    /// Buffers for a pass with `nt` blocks: one per layer, `nt * out` each.
+    pub fn buffers_t(&self, nt: usize) -> Vec<Vec<T>> {
+        self.layers.iter().map(|l| vec![T::default(); nt * l.out]).collect()
     }
 }
 
@@ -114,15 +132,6 @@ impl Mlp {
         self
     }
 
-    /// `b0 + W0[:, split..] z` with the SIMD kernel (bits may differ from `z_bias` in the last place).
-    #[inline(always)]
-    pub(crate) fn z_bias_fast<const FMA: bool, const WIDE: bool>(&self, z: &[f64], zb: &mut [f64]) {
-        match &self.z_part {
-            Some(d) => dense::<FMA, WIDE>(d, 1, z, zb),
-            None => zb.copy_from_slice(&self.layers[0].b),
-        }
-    }
-
     /// First layer's constant part for a fixed context: `b0 + W0[:, split..] z`.
     /// Computed once per z, not per step.
     pub fn z_bias(&self, split: usize, z: &[f64], zb: &mut [f64]) {
@@ -139,11 +148,11 @@ impl Mlp {
 /// Outputs `i0..i0+BW` of `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks, accumulated in registers;
 /// each output's sum runs over the inputs in order (b + w_0 x_0 + w_1 x_1 + …).
 #[inline(always)]
-fn block<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+fn block<T: Real, const NT: usize, const FMA: bool, const BW: usize>(d: &Dense<T>, x: &[T], y: &mut [T], i0: usize) {
     let (inp, out) = (d.inp, d.out);
     assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + BW <= out);
     assert!(d.wt.len() >= inp * out && d.b.len() >= out);
-    let mut acc = [[0.0f64; BW]; NT];
+    let mut acc = [[T::default(); BW]; NT];
     acc[0].copy_from_slice(&d.b[i0..i0 + BW]);
     let wt = d.wt.as_ptr();
     let xp = x.as_ptr();
@@ -151,11 +160,11 @@ fn block<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64]
         // SAFETY: j < inp and i0 + BW <= out, so j*out + i0 + BW <= inp*out <= wt.len() (asserted);
         // k*inp + j < NT*inp <= x.len() (asserted). Unchecked reads keep bounds checks out of the
         // innermost loop, which is most of the engine's time.
-        let w: &[f64; BW] = unsafe { &*(wt.add(j * out + i0) as *const [f64; BW]) };
+        let w: &[T; BW] = unsafe { &*(wt.add(j * out + i0) as *const [T; BW]) };
         for k in 0..NT {
             let xk = unsafe { *xp.add(k * inp + j) };
             for i in 0..BW {
-                acc[k][i] = madd::<FMA>(w[i], xk, acc[k][i]);
+                acc[k][i] = T::madd::<FMA>(w[i], xk, acc[k][i]);
             }
         }
     }
@@ -168,12 +177,12 @@ fn block<const NT: usize, const FMA: bool, const BW: usize>(d: &Dense, x: &[f64]
 /// partial sums (lane l takes inputs j ≡ l mod 8), reduced in a fixed tree — short dependency
 /// chains instead of one 64-long chain. The order is fixed by the source, not by the vector width.
 #[inline(always)]
-fn narrow<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
+fn narrow<T: Real, const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense<T>, x: &[T], y: &mut [T], i0: usize) {
     let (inp, out) = (d.inp, d.out);
     for i in i0..out {
         let wr = &d.rows[i * inp..(i + 1) * inp];
         for k in 0..NT {
-            let s = dot8_wide::<FMA, WIDE>(wr, &x[k * inp..(k + 1) * inp]);
+            let s = T::dot8_wide::<FMA, WIDE>(wr, &x[k * inp..(k + 1) * inp]);
             y[k * out + i] = if k == 0 { d.b[i] + s } else { s };
         }
     }
@@ -181,13 +190,13 @@ fn narrow<const NT: usize, const FMA: bool, const WIDE: bool>(d: &Dense, x: &[f6
 
 /// `dot8`, in one zmm register with AVX-512 (LLVM left the 8 partial sums scalar): the same sums.
 #[inline(always)]
-fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
+pub(crate) fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
     #[cfg(target_arch = "x86_64")]
     if WIDE && w.len().is_multiple_of(8) {
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
         return unsafe { dot8_512(w, x) };
     }
-    dot8::<FMA>(w, x)
+    dot8::<f64, FMA>(w, x)
 }
 
 /// `dot8` for a multiple of 8 terms: partial sum l in lane l, then the tree by lane permutations
@@ -212,17 +221,17 @@ unsafe fn dot8_512(w: &[f64], x: &[f64]) -> f64 {
 /// Σ_i w[i] x[i] with 8 partial sums (term i into sum i mod 8, each in order) and a fixed tree:
 /// `narrow`'s dot products (lane by lane in `lanes.rs`).
 #[inline(always)]
-fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 8];
+pub(crate) fn dot8<T: Real, const FMA: bool>(w: &[T], x: &[T]) -> T {
+    let mut acc = [T::default(); 8];
     let mut wc = w.chunks_exact(8);
     let mut xc = x[..w.len()].chunks_exact(8);
     for (w8, x8) in (&mut wc).zip(&mut xc) {
         for l in 0..8 {
-            acc[l] = madd::<FMA>(w8[l], x8[l], acc[l]);
+            acc[l] = T::madd::<FMA>(w8[l], x8[l], acc[l]);
         }
     }
     for (l, (wi, xi)) in wc.remainder().iter().zip(xc.remainder()).enumerate() {
-        acc[l] = madd::<FMA>(*wi, *xi, acc[l]);
+        acc[l] = T::madd::<FMA>(*wi, *xi, acc[l]);
     }
     ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
 }
@@ -230,7 +239,7 @@ fn dot8<const FMA: bool>(w: &[f64], x: &[f64]) -> f64 {
 /// `y[k] = W x[k] (+ b for k = 0)` for `NT` blocks (value and tangents): register blocks of `BW`
 /// outputs (`WIDE`: 32, 16 and 8 outputs in 512-bit registers), then of 4, then the narrow path.
 #[inline(always)]
-fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>(d: &Dense, x: &[f64], y: &mut [f64], rev: bool) {
+fn dense_nt<T: Real, const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>(d: &Dense<T>, x: &[T], y: &mut [T], rev: bool) {
     let out = d.out;
     let mut i0 = 0;
     #[cfg(target_arch = "x86_64")]
@@ -238,81 +247,85 @@ fn dense_nt<const NT: usize, const FMA: bool, const WIDE: bool, const BW: usize>
         // SAFETY: WIDE is only instantiated inside `#[target_feature(enable = "avx512f")]` code.
         unsafe {
             // rev: the same blocks last to first (independent outputs, so the same bits; see `eval`)
-            let n32 = out / 32;
+            // (f64: 32 and 8 outputs; f32: 64 and 16)
+            let lw = T::LANES;
+            let n32 = out / (4 * lw);
             for b in 0..n32 {
-                block512::<NT, 4>(d, x, y, 32 * if rev { n32 - 1 - b } else { b });
+                block512::<T, NT, 4>(d, x, y, 4 * lw * if rev { n32 - 1 - b } else { b });
             }
-            i0 = 32 * n32;
-            while i0 + 8 <= out {
-                block512::<NT, 1>(d, x, y, i0);
-                i0 += 8;
+            i0 = 4 * lw * n32;
+            while i0 + lw <= out {
+                block512::<T, NT, 1>(d, x, y, i0);
+                i0 += lw;
             }
         }
     }
     while i0 + BW <= out {
-        block::<NT, FMA, BW>(d, x, y, i0);
+        block::<T, NT, FMA, BW>(d, x, y, i0);
         i0 += BW;
     }
     while i0 + 4 <= out {
-        block::<NT, FMA, 4>(d, x, y, i0);
+        block::<T, NT, FMA, 4>(d, x, y, i0);
         i0 += 4;
     }
     if i0 < out {
-        narrow::<NT, FMA, WIDE>(d, x, y, i0);
+        narrow::<T, NT, FMA, WIDE>(d, x, y, i0);
     }
 }
 
-/// `block` for 8·R outputs in R zmm registers per block, written with intrinsics: the compiler
+/// `block` for LANES·R outputs in R zmm registers per block, written with intrinsics: the compiler
 /// does not vectorise the generic `block` at these widths (it spilled 96 accumulators to the stack).
 /// The same fused operations in the same order as `block::<NT, true, _>`, so the same bits.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
 #[inline]
-pub(crate) unsafe fn block512<const NT: usize, const R: usize>(d: &Dense, x: &[f64], y: &mut [f64], i0: usize) {
-    use std::arch::x86_64::*;
-    let (inp, out) = (d.inp, d.out);
-    assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + 8 * R <= out);
+pub(crate) unsafe fn block512<T: Real, const NT: usize, const R: usize>(d: &Dense<T>, x: &[T], y: &mut [T], i0: usize) {
+    let (inp, out, lw) = (d.inp, d.out, T::LANES);
+    assert!(x.len() >= NT * inp && y.len() >= NT * out && i0 + lw * R <= out);
     assert!(d.wt.len() >= inp * out && d.b.len() >= out);
-    let mut acc = [[_mm512_setzero_pd(); R]; NT];
-    for r in 0..R {
-        // SAFETY (all pointer reads and writes): indices are within the lengths asserted above.
-        acc[0][r] = unsafe { _mm512_loadu_pd(d.b.as_ptr().add(i0 + 8 * r)) };
-    }
-    let (wt, xp) = (d.wt.as_ptr(), x.as_ptr());
-    for j in 0..inp {
-        let mut w = [_mm512_setzero_pd(); R];
+    // SAFETY (all `T::z*` calls and pointer reads and writes): avx512f (the caller's target feature);
+    // indices within the lengths asserted above.
+    unsafe {
+        let mut acc = [[T::zsplat(T::default()); R]; NT];
         for r in 0..R {
-            w[r] = unsafe { _mm512_loadu_pd(wt.add(j * out + i0 + 8 * r)) };
+            acc[0][r] = T::zload(d.b.as_ptr().add(i0 + lw * r));
         }
-        for k in 0..NT {
-            let xk = _mm512_set1_pd(unsafe { *xp.add(k * inp + j) });
+        let (wt, xp) = (d.wt.as_ptr(), x.as_ptr());
+        for j in 0..inp {
+            let mut w = [T::zsplat(T::default()); R];
             for r in 0..R {
-                acc[k][r] = _mm512_fmadd_pd(w[r], xk, acc[k][r]);
+                w[r] = T::zload(wt.add(j * out + i0 + lw * r));
+            }
+            for k in 0..NT {
+                let xk = T::zsplat(*xp.add(k * inp + j));
+                for r in 0..R {
+                    acc[k][r] = T::zfmadd(w[r], xk, acc[k][r]);
+                }
             }
         }
-    }
-    for k in 0..NT {
-        for r in 0..R {
-            unsafe { _mm512_storeu_pd(y.as_mut_ptr().add(k * out + i0 + 8 * r), acc[k][r]) };
+        for k in 0..NT {
+            for r in 0..R {
+                T::zstore(y.as_mut_ptr().add(k * out + i0 + lw * r), acc[k][r]);
+            }
         }
     }
 }
 
 /// Same as `dense_nt` for any block count (general n; not the 2-joint hot path).
 #[inline(always)]
-fn dense_dyn<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
+fn dense_dyn<T: Real, const FMA: bool>(d: &Dense<T>, nt: usize, x: &[T], y: &mut [T]) {
     let (inp, out) = (d.inp, d.out);
     for k in 0..nt {
         let yk = &mut y[k * out..(k + 1) * out];
         if k == 0 {
             yk.copy_from_slice(&d.b);
         } else {
-            yk.fill(0.0);
+            yk.fill(T::default());
         }
         for j in 0..inp {
             let xk = x[k * inp + j];
             for (yi, wi) in yk.iter_mut().zip(d.col(j)) {
-                *yi = madd::<FMA>(*wi, xk, *yi);
+                *yi = T::madd::<FMA>(*wi, xk, *yi);
             }
         }
     }
@@ -323,34 +336,34 @@ fn dense_dyn<const FMA: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
 /// AVX-512: 3 x 4 zmm, see `block512`; portable SSE2: 4 outputs). The block width only changes which outputs are
 /// computed together, never the order of any sum, so AVX2 and AVX-512 agree bit for bit.
 #[inline(always)]
-pub(crate) fn dense<const FMA: bool, const WIDE: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
-    dense_ordered::<FMA, WIDE>(d, nt, x, y, false)
+pub(crate) fn dense<T: Real, const FMA: bool, const WIDE: bool>(d: &Dense<T>, nt: usize, x: &[T], y: &mut [T]) {
+    dense_ordered::<T, FMA, WIDE>(d, nt, x, y, false)
 }
 
 /// `dense`, its register blocks visited last to first when `rev` (the same results).
 #[inline(always)]
-pub(crate) fn dense_ordered<const FMA: bool, const WIDE: bool>(d: &Dense, nt: usize, x: &[f64], y: &mut [f64], rev: bool) {
+pub(crate) fn dense_ordered<T: Real, const FMA: bool, const WIDE: bool>(d: &Dense<T>, nt: usize, x: &[T], y: &mut [T], rev: bool) {
     match (FMA, WIDE) {
         (true, true) => match nt {
-            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y, rev),
-            2 => dense_nt::<2, FMA, WIDE, 8>(d, x, y, rev),
-            3 => dense_nt::<3, FMA, WIDE, 8>(d, x, y, rev),
-            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y, rev),
-            _ => dense_dyn::<FMA>(d, nt, x, y),
+            1 => dense_nt::<T, 1, FMA, WIDE, 8>(d, x, y, rev),
+            2 => dense_nt::<T, 2, FMA, WIDE, 8>(d, x, y, rev),
+            3 => dense_nt::<T, 3, FMA, WIDE, 8>(d, x, y, rev),
+            4 => dense_nt::<T, 4, FMA, WIDE, 8>(d, x, y, rev),
+            _ => dense_dyn::<T, FMA>(d, nt, x, y),
         },
         (true, false) => match nt {
-            1 => dense_nt::<1, FMA, WIDE, 16>(d, x, y, rev),
-            2 => dense_nt::<2, FMA, WIDE, 12>(d, x, y, rev),
-            3 => dense_nt::<3, FMA, WIDE, 12>(d, x, y, rev),
-            4 => dense_nt::<4, FMA, WIDE, 8>(d, x, y, rev),
-            _ => dense_dyn::<FMA>(d, nt, x, y),
+            1 => dense_nt::<T, 1, FMA, WIDE, 16>(d, x, y, rev),
+            2 => dense_nt::<T, 2, FMA, WIDE, 12>(d, x, y, rev),
+            3 => dense_nt::<T, 3, FMA, WIDE, 12>(d, x, y, rev),
+            4 => dense_nt::<T, 4, FMA, WIDE, 8>(d, x, y, rev),
+            _ => dense_dyn::<T, FMA>(d, nt, x, y),
         },
         _ => match nt {
-            1 => dense_nt::<1, FMA, WIDE, 8>(d, x, y, rev),
-            2 => dense_nt::<2, FMA, WIDE, 4>(d, x, y, rev),
-            3 => dense_nt::<3, FMA, WIDE, 4>(d, x, y, rev),
-            4 => dense_nt::<4, FMA, WIDE, 4>(d, x, y, rev),
-            _ => dense_dyn::<FMA>(d, nt, x, y),
+            1 => dense_nt::<T, 1, FMA, WIDE, 8>(d, x, y, rev),
+            2 => dense_nt::<T, 2, FMA, WIDE, 4>(d, x, y, rev),
+            3 => dense_nt::<T, 3, FMA, WIDE, 4>(d, x, y, rev),
+            4 => dense_nt::<T, 4, FMA, WIDE, 4>(d, x, y, rev),
+            _ => dense_dyn::<T, FMA>(d, nt, x, y),
         },
     }
 }
@@ -371,12 +384,12 @@ pub(crate) fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [f64], wid
 /// Run layers 1.. of `mlp` given layer 0's pre-activations (with tangents) in `bufs[0]`.
 /// The output layer's values and tangents end up in `bufs[last]`.
 #[inline(always)]
-pub(crate) fn mlp_rest<const FMA: bool, const WIDE: bool>(mlp: &Mlp, nt: usize, bufs: &mut [Vec<f64>], rev: bool) {
+pub(crate) fn mlp_rest<T: Real, const FMA: bool, const WIDE: bool>(mlp: &Mlp<T>, nt: usize, bufs: &mut [Vec<T>], rev: bool) {
     for l in 1..mlp.layers.len() {
         let (prev, next) = bufs.split_at_mut(l);
         let a = &mut prev[l - 1];
-        tanh_tangent::<FMA, WIDE>(a, mlp.layers[l - 1].out, nt);
-        dense_ordered::<FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0], rev);
+        T::tanh_tangent::<FMA, WIDE>(a, mlp.layers[l - 1].out, nt);
+        dense_ordered::<T, FMA, WIDE>(&mlp.layers[l], nt, a, &mut next[0], rev);
     }
 }
 
@@ -394,7 +407,7 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx2,fma")]
     fn wide_avx512(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
-        dense::<true, true>(d, nt, x, y)
+        dense::<f64, true, true>(d, nt, x, y)
     }
 
     fn wide(d: &Dense, nt: usize, x: &[f64], y: &mut [f64]) {
@@ -403,7 +416,7 @@ mod tests {
             // SAFETY: the CPU has the features.
             return unsafe { wide_avx512(d, nt, x, y) };
         }
-        dense::<true, false>(d, nt, x, y)
+        dense::<f64, true, false>(d, nt, x, y)
     }
 
     fn dense_check(fma: u8) {
@@ -415,8 +428,8 @@ mod tests {
             let x: Vec<f64> = (0..nt * inp).map(|i| (i as f64 * 0.37).sin()).collect();
             let mut y = vec![0.0; nt * out];
             match fma {
-                0 => dense::<false, false>(&d, nt, &x, &mut y),
-                1 => dense::<true, false>(&d, nt, &x, &mut y),
+                0 => dense::<f64, false, false>(&d, nt, &x, &mut y),
+                1 => dense::<f64, true, false>(&d, nt, &x, &mut y),
                 _ => wide(&d, nt, &x, &mut y),
             }
             for k in 0..nt {

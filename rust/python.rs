@@ -14,9 +14,10 @@ use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::python_conv::{bad, expect_shape, one, one_scalar, pool_for, rows, samples, scale_in_place, sum, to_py, view};
+use crate::python_conv::{bad, expect_shape, is_f32, lock, one, one_scalar, pool_for, rows, samples, scale_in_place, sum, to_py, view};
 use crate::rollout::delayed_into;
 use crate::batch::Samples;
+use crate::real::Real;
 use crate::{EncoderKind, Inputs, JointType, LaneWorkspace, Model, Workspace, ZSeq};
 
 type ArrayPair<'py> = (Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>);
@@ -30,6 +31,8 @@ struct Engine {
     model: Model,
     /// Workspace for single-sample and small calls (no allocation per call).
     ws: Mutex<Workspace>,
+    /// Workspace of the float32 single-sample calls and single rollouts (`precision="f32"`).
+    ws32: Mutex<Workspace<f32>>,
     /// Workspaces of batch calls, kept between calls (a concurrent second call makes its own).
     batch: Mutex<Vec<Workspace>>,
     /// The float32 rollouts' lane workspaces, kept likewise.
@@ -37,8 +40,13 @@ struct Engine {
 }
 
 impl Engine {
+    fn with_model(model: Model) -> Engine {
+        let (ws, ws32) = (Mutex::new(model.workspace()), Mutex::new(model.workspace_f32()));
+        Engine { model, ws, ws32, batch: Mutex::new(vec![]), lanes: Mutex::new(vec![]) }
+    }
+
     fn ws(&self) -> MutexGuard<'_, Workspace> {
-        self.ws.lock().unwrap_or_else(|p| p.into_inner())
+        lock(&self.ws)
     }
 
     /// `f` on `count` workspaces: the kept ones (grown as needed) or, while another call holds
@@ -108,14 +116,16 @@ impl Engine {
         Ok([z, f_v])
     }
 
-    /// One sample through `f` in the shared workspace, GIL held; output shaped like `q`.
-    fn single<'py>(
+    /// One sample through `f` in the shared workspace `ws` (float64 or float32), GIL held; output shaped like `q`.
+    #[allow(clippy::too_many_arguments)]
+    fn single<'py, T: Real>(
         &self,
         py: Python<'py>,
         args: [&Bound<'py, PyAny>; 3],
         z: Option<&Bound<'py, PyAny>>,
         f_v: Option<&Bound<'py, PyAny>>,
-        f: impl Fn(&Model, &mut Workspace, [&[f64]; 3], f64, &mut [f64]) -> crate::Result<()>,
+        ws: &Mutex<Workspace<T>>,
+        f: impl Fn(&Model, &mut Workspace<T>, [&[f64]; 3], f64, &mut [f64]) -> crate::Result<()>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
         let m = &self.model;
         let n = m.n;
@@ -136,7 +146,7 @@ impl Engine {
         };
         let mut out = [0.0f64; 64];
         {
-            let mut ws = self.ws();
+            let mut ws = lock(ws);
             if let Some(zr) = &zr {
                 ws.set_z(m, zr.as_slice()?).map_err(to_py)?;
             }
@@ -153,17 +163,13 @@ impl Engine {
 impl Engine {
     #[new]
     fn new(py: Python<'_>, path: std::path::PathBuf) -> PyResult<Self> {
-        let model = py.detach(|| Model::load(&path)).map_err(to_py)?;
-        let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws, batch: Mutex::new(vec![]), lanes: Mutex::new(vec![]) })
+        Ok(Engine::with_model(py.detach(|| Model::load(&path)).map_err(to_py)?))
     }
 
     /// Load from the bytes of a weight file.
     #[staticmethod]
     fn from_bytes(data: &[u8]) -> PyResult<Self> {
-        let model = Model::from_bytes(data).map_err(to_py)?;
-        let ws = Mutex::new(model.workspace());
-        Ok(Engine { model, ws, batch: Mutex::new(vec![]), lanes: Mutex::new(vec![]) })
+        Ok(Engine::with_model(Model::from_bytes(data).map_err(to_py)?))
     }
 
     #[getter]
@@ -312,8 +318,9 @@ impl Engine {
     }
 
     /// Single-sample τ: q, qd, qdd (n,) or (1, n), z (dz,) or (1, dz), f_v a number. `TypeError` for
-    /// anything else (use `inverse_dynamics`).
-    #[pyo3(signature = (q, qd, qdd, z=None, f_v=None))]
+    /// anything else (use `inverse_dynamics`). `precision` "f64" or "f32" (`inverse_dynamics_f32`).
+    #[pyo3(signature = (q, qd, qdd, z=None, f_v=None, precision="f64"))]
+    #[allow(clippy::too_many_arguments)]
     fn inverse_dynamics_one<'py>(
         &self,
         py: Python<'py>,
@@ -322,12 +329,17 @@ impl Engine {
         qdd: &Bound<'py, PyAny>,
         z: Option<&Bound<'py, PyAny>>,
         f_v: Option<&Bound<'py, PyAny>>,
+        precision: &str,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        self.single(py, [q, qd, qdd], z, f_v, |m, ws, [q, qd, qdd], f, out| m.inverse_dynamics(ws, q, qd, qdd, f, None, out))
+        if is_f32(precision)? {
+            return self.single(py, [q, qd, qdd], z, f_v, &self.ws32, |m, ws, [q, qd, qdd], f, out| m.inverse_dynamics_f32(ws, q, qd, qdd, f, out));
+        }
+        self.single(py, [q, qd, qdd], z, f_v, &self.ws, |m, ws, [q, qd, qdd], f, out| m.inverse_dynamics(ws, q, qd, qdd, f, None, out))
     }
 
     /// Single-sample q̈, as `inverse_dynamics_one`.
-    #[pyo3(signature = (q, qd, tau, z=None, f_v=None))]
+    #[pyo3(signature = (q, qd, tau, z=None, f_v=None, precision="f64"))]
+    #[allow(clippy::too_many_arguments)]
     fn forward_dynamics_one<'py>(
         &self,
         py: Python<'py>,
@@ -336,8 +348,12 @@ impl Engine {
         tau: &Bound<'py, PyAny>,
         z: Option<&Bound<'py, PyAny>>,
         f_v: Option<&Bound<'py, PyAny>>,
+        precision: &str,
     ) -> PyResult<Bound<'py, PyArrayDyn<f64>>> {
-        self.single(py, [q, qd, tau], z, f_v, |m, ws, [q, qd, tau], f, out| m.forward_dynamics(ws, q, qd, tau, f, None, out))
+        if is_f32(precision)? {
+            return self.single(py, [q, qd, tau], z, f_v, &self.ws32, |m, ws, [q, qd, tau], f, out| m.forward_dynamics_f32(ws, q, qd, tau, f, out));
+        }
+        self.single(py, [q, qd, tau], z, f_v, &self.ws, |m, ws, [q, qd, tau], f, out| m.forward_dynamics(ws, q, qd, tau, f, None, out))
     }
 
     /// Flat [H (n·n), c (n), g (n), B (n)] per sample, (N·(n·n+3n),) — split by the wrapper.
@@ -365,7 +381,7 @@ impl Engine {
 
     /// Batched rollouts: q0, qd0 (B, n), tau (B, T, n), z (B, dz) or (B, T, dz), f_v (B, T),
     /// tau_e (B, T, n); `threads` (None: one per core); `precision` "f64" (bit-exact) or "f32"
-    /// (`rollout_batch_f32`). Returns flat q and qd, each B·(T+1)·n.
+    /// (`rollout_batch_f32`; B = 1: `rollout_f32`). Returns flat q and qd, each B·(T+1)·n.
     #[pyo3(signature = (q0, qd0, tau, dt, z=None, f_v=None, tau_e=None, threads=None, precision="f64"))]
     #[allow(clippy::too_many_arguments)]
     fn rollout<'py>(
@@ -382,11 +398,7 @@ impl Engine {
         precision: &str,
     ) -> PyResult<ArrayPair<'py>> {
         let m = &self.model;
-        let f32 = match precision {
-            "f64" => false,
-            "f32" => true,
-            other => return Err(bad(format!("precision must be \"f64\" or \"f32\", got {other:?}"))),
-        };
+        let f32 = is_f32(precision)?;
         let (n, dz) = (m.n, m.dz);
         let (s, q0) = view("q0", &q0)?;
         let b = samples("q0", &s, n)?;
@@ -421,7 +433,13 @@ impl Engine {
         let pool = pool_for(if b == 1 { Some(1) } else { threads })?;
         py.detach(|| {
             let inp = Inputs { tau, z: zs, f_v, tau_e };
-            if f32 {
+            if f32 && b == 1 && !m.ext.any() {
+                let mut ws = lock(&self.ws32);
+                if dz == 0 {
+                    ws.set_z(m, &[])?;
+                }
+                m.rollout_f32(&mut ws, q0, qd0, inp, dt, &mut q, &mut qd)
+            } else if f32 {
                 self.with_lanes(b, |lws| m.rollout_batch_f32(&pool, lws, q0, qd0, inp, dt, &mut q, &mut qd))
             } else if b == 1 {
                 let mut ws = self.ws();

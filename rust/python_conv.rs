@@ -5,6 +5,8 @@ use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArray1, PyReadonlyArrayDyn, Py
 use pyo3::exceptions::{PyArithmeticError, PyOSError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 
+use std::sync::{Mutex, MutexGuard};
+
 use crate::{pool, Error};
 
 /// Sum of a contiguous float64 array (read without copying).
@@ -99,4 +101,17 @@ pub(crate) fn one_scalar(a: &Bound<'_, PyAny>) -> PyResult<f64> {
     }
     let r = one(a, 1)?;
     Ok(r.as_slice().map_err(|_| PyTypeError::new_err("not contiguous"))?[0])
+}
+
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// `precision`: "f64" (false) or "f32" (true); anything else is a `ValueError`.
+pub(crate) fn is_f32(precision: &str) -> PyResult<bool> {
+    match precision {
+        "f64" => Ok(false),
+        "f32" => Ok(true),
+        other => Err(bad(format!("precision must be \"f64\" or \"f32\", got {other:?}"))),
+    }
 }

@@ -1,12 +1,14 @@
-//! The float type of the lane kernels (`lanes.rs`) and lane rollouts (`lane_rollout.rs`): f64, the
-//! engine's precision (bit-exact with the single pass and torch float64), or f32 (opt-in batched
-//! rollouts, 16 samples per AVX-512 register; `pub` only to bound `LaneWorkspace<T>`, in a private
+//! The float type of the lane kernels (`lanes.rs`), lane rollouts (`lane_rollout.rs`) and the
+//! single-sample pass (`mlp.rs`, `delan.rs`, `single_f32.rs`): f64, the engine's precision (bit-exact
+//! with torch float64), or f32 (opt-in batched rollouts, 16 samples per AVX-512 register, and
+//! single-sample calls; `pub` only to bound `LaneWorkspace<T>`, in a private
 //! module, so not part of the API). Everything generic over [`Real`] monomorphises to
 //! the code it was written as for f64: the trait's methods are `#[inline(always)]` wrappers.
 
 use std::fmt::Debug;
 use std::ops::{Add, Div, Mul, Neg, Sub};
 
+use crate::delan::Workspace;
 use crate::math32;
 use crate::mlp::{tanh_tangent, Mlp};
 use crate::model::Model;
@@ -29,6 +31,12 @@ pub trait Real:
     fn softplus_sigmoid(self) -> (Self, Self);
     /// tanh on block 0 of a [block][unit·lane] buffer and the chain rule on the tangent blocks.
     fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [Self], width: usize, nt: usize);
+    /// `mlp::dot8` (8 partial sums, fixed tree) of the narrow output layers; f64 in one zmm when WIDE.
+    fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[Self], x: &[Self]) -> Self;
+    fn min(self, o: Self) -> Self;
+    fn max(self, o: Self) -> Self;
+    /// The first layers' z parts of `ws.zt` at the model's SIMD level (`Workspace::set_z`).
+    fn z_bias(m: &Model, ws: &mut Workspace<Self>);
     /// L, V and LIM (if any) in this precision.
     fn nets(m: &Model) -> [Option<&Mlp<Self>>; 3];
 
@@ -77,6 +85,21 @@ impl Real for f64 {
     #[inline(always)]
     fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [f64], width: usize, nt: usize) {
         tanh_tangent::<FMA, WIDE>(a, width, nt)
+    }
+    #[inline(always)]
+    fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f64], x: &[f64]) -> f64 {
+        crate::mlp::dot8_wide::<FMA, WIDE>(w, x)
+    }
+    #[inline(always)]
+    fn min(self, o: f64) -> f64 {
+        f64::min(self, o)
+    }
+    #[inline(always)]
+    fn max(self, o: f64) -> f64 {
+        f64::max(self, o)
+    }
+    fn z_bias(m: &Model, ws: &mut Workspace<f64>) {
+        crate::delan::z_bias_dispatch64(m.simd, m, ws)
     }
     fn nets(m: &Model) -> [Option<&Mlp<f64>>; 3] {
         [Some(&m.net_l), Some(&m.net_v), m.net_lim.as_ref()]
@@ -141,6 +164,21 @@ impl Real for f32 {
     #[inline(always)]
     fn tanh_tangent<const FMA: bool, const WIDE: bool>(a: &mut [f32], width: usize, nt: usize) {
         math32::tanh_tangent::<FMA, WIDE>(a, width, nt)
+    }
+    #[inline(always)]
+    fn dot8_wide<const FMA: bool, const WIDE: bool>(w: &[f32], x: &[f32]) -> f32 {
+        crate::mlp::dot8::<f32, FMA>(w, x)
+    }
+    #[inline(always)]
+    fn min(self, o: f32) -> f32 {
+        f32::min(self, o)
+    }
+    #[inline(always)]
+    fn max(self, o: f32) -> f32 {
+        f32::max(self, o)
+    }
+    fn z_bias(m: &Model, ws: &mut Workspace<f32>) {
+        crate::delan::z_bias_dispatch32(m.simd, m, ws)
     }
     fn nets(m: &Model) -> [Option<&Mlp<f32>>; 3] {
         m.nets_f32.each_ref().map(|n| n.as_ref())

@@ -9,6 +9,7 @@ use crate::delan::eval_dispatch;
 use crate::dynamics::check;
 use crate::error::{Error, Result};
 use crate::model::Model;
+use crate::real::Real;
 
 /// The context over a rollout.
 #[derive(Debug, Clone, Copy)]
@@ -74,9 +75,9 @@ impl Model {
 
     /// Check a rollout's inputs, set a constant z, write the initial state; returns T.
     #[allow(clippy::too_many_arguments)]
-    pub(crate) fn rollout_begin(
+    pub(crate) fn rollout_begin<T: Real>(
         &self,
-        ws: &mut Workspace,
+        ws: &mut Workspace<T>,
         q0: &[f64],
         qd0: &[f64],
         inp: &Inputs,

@@ -10,13 +10,16 @@ use crate::model::Model;
 use crate::rollout::{Inputs, ZSeq};
 
 /// Seconds per call of `op`: "inverse", "forward", "rollout_step" (a 200-step rollout / 200,
-/// constant z) or "encode_step"; the minimum over `batches` batches of `per_batch` calls.
+/// constant z), their float32 versions "inverse_f32", "forward_f32", "rollout_step_f32" (models
+/// without extension terms), or "encode_step"; the minimum over `batches` batches of `per_batch` calls.
 pub fn time_hot(m: &Model, op: &str, per_batch: usize, batches: usize) -> Result<f64> {
     let n = m.n;
     let per_batch = per_batch.max(1);
     let mut ws = m.workspace();
     let z: Vec<f64> = (0..m.dz).map(|i| (i as f64 * 0.37).sin() * 0.5).collect();
     ws.set_z(m, &z)?;
+    let mut ws32 = m.workspace_f32();
+    ws32.set_z(m, &z)?;
     let q: Vec<f64> = (0..n).map(|i| 0.3 + 0.2 * i as f64).collect();
     let qd: Vec<f64> = (0..n).map(|i| 1.0 - 0.5 * i as f64).collect();
     let mut out = vec![0.0; n];
@@ -45,6 +48,21 @@ pub fn time_hot(m: &Model, op: &str, per_batch: usize, batches: usize) -> Result
             "rollout_step" => {
                 let zs = if m.dz > 0 { ZSeq::Const(&z) } else { ZSeq::Keep };
                 m.rollout(&mut ws, &q, &qd, Inputs { tau: &tau, z: zs, f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)?;
+                calls = t_len;
+            }
+            "inverse_f32" => {
+                for _ in 0..per_batch {
+                    m.inverse_dynamics_f32(&mut ws32, black_box(&q), black_box(&qd), black_box(&qd), 100.0, &mut out)?;
+                }
+            }
+            "forward_f32" => {
+                for _ in 0..per_batch {
+                    m.forward_dynamics_f32(&mut ws32, black_box(&q), black_box(&qd), black_box(&qd), 100.0, &mut out)?;
+                }
+            }
+            "rollout_step_f32" => {
+                let zs = if m.dz > 0 { ZSeq::Const(&z) } else { ZSeq::Keep };
+                m.rollout_f32(&mut ws32, &q, &qd, Inputs { tau: &tau, z: zs, f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo, &mut qdo)?;
                 calls = t_len;
             }
             "encode_step" => {

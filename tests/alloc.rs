@@ -1,6 +1,7 @@
 //! After loading, no hot call allocates: a counting global allocator watches every allocation made on
 //! the engine's threads (the test thread and the engine pool's workers) while the engine runs inverse/forward
-//! dynamics, terms, set_z, rollouts (single and batched on an `exolan::Pool`, float64 and float32 lanes) and
+//! dynamics (float64 and float32), terms, set_z, rollouts (single float64 and float32, batched on an
+//! `exolan::Pool`, float64 and float32 lanes) and
 //! the streaming encoders.
 //! `scripts/alloc_stress.sh` runs it 20 times with a busy loop on every core beside it.
 
@@ -150,6 +151,9 @@ fn hot_calls_do_not_allocate() {
         let (mut qol, mut qdol) = (vec![0.0; 20 * (t_len + 1) * n], vec![0.0; 20 * (t_len + 1) * n]);
         let zl_seq = if m.dz > 0 { ZSeq::PerStep(&zl) } else { ZSeq::Keep };
         let mut tau_many = vec![0.0; 20 * n];
+        // float32 single-sample calls and a single float32 rollout (no extension terms either)
+        let mut ws32 = m.workspace_f32();
+        let (mut qo32, mut qdo32) = (vec![0.0; (t_len + 1) * n], vec![0.0; (t_len + 1) * n]);
         // no warm-up of the pool: its first batch must not allocate either
         ws.set_z(&m, &z2).unwrap();
 
@@ -168,6 +172,12 @@ fn hot_calls_do_not_allocate() {
                 // 100 batches: rayon's injector allocated a block every 63 jobs from outside its pool
                 batch(&mut wss, &mut qob, &mut qdob);
                 if lanes32 {
+                    ws32.set_z(&m, if k % 2 == 0 { &z } else { &z2 }).unwrap();
+                    m.inverse_dynamics_f32(&mut ws32, &q, &qd, &qdd, 120.0, &mut out).unwrap();
+                    m.forward_dynamics_f32(&mut ws32, &q, &qd, &out, 120.0, &mut qdd_out).unwrap();
+                    let zseq = if m.dz > 0 { ZSeq::PerStep(&zs) } else { ZSeq::Keep };
+                    m.rollout_f32(&mut ws32, &q, &qd, Inputs { tau: &tau, z: zseq, f_v: Some(&f_v), tau_e: None }, 0.005, &mut qo32, &mut qdo32)
+                        .unwrap();
                     let inp = Inputs { tau: &taul, z: zl_seq, f_v: Some(&fvl), tau_e: None };
                     m.rollout_batch_f32(&pool, &mut lws, &q0l, &q0l, inp, 0.005, &mut qol, &mut qdol).unwrap();
                 }

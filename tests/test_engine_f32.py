@@ -1,5 +1,6 @@
 """The engine's float32 batched rollouts (`Engine.rollout(..., precision="f32")`, `fast_rollout`): agreement
-with the float64 engine and with torch float32 over 20 steps, shapes, determinism, and clear errors."""
+with the float64 engine and with torch float32 over 20 steps, shapes, determinism, and clear errors; and the
+float32 single-sample calls (`Engine.inverse_dynamics(..., precision="f32")` etc.)."""
 from __future__ import annotations
 
 import numpy as np
@@ -113,3 +114,55 @@ def test_f32_singular_inertia_raises_arithmetic_error(tmp_path):
     eng = Engine(export(m, tmp_path / "s.safetensors"))
     with pytest.raises(ArithmeticError, match="batch element 0: .*ill-conditioned|ill-conditioned"):
         eng.rollout(np.zeros((3, 2)), np.zeros((3, 2)), np.ones((3, 4, 2)), 0.005, precision="f32")
+
+
+def test_f32_single_sample_calls(model_file, batch, tmp_path):
+    """`precision="f32"` on one sample: inverse/forward dynamics and a single rollout in float32, float64 in
+    and out, within float32 rounding of the float64 engine; deterministic; clear errors."""
+    _, path = model_file
+    eng = Engine(path)
+    b = batch
+    rng = np.random.default_rng(3)
+    for i in range(8):
+        q, qd, qdd = rng.normal(size=2), rng.normal(size=2), rng.normal(size=2) * 5
+        z, fv = b["z"][i, 0], float(b["f_v"][i, 0])
+        tau64 = eng.inverse_dynamics(q, qd, qdd, z, fv)
+        tau32 = eng.inverse_dynamics(q, qd, qdd, z, fv, precision="f32")
+        assert tau32.shape == (2,) and tau32.dtype == np.float64
+        assert _rel(tau32[None], tau64[None]) < RTOL and not np.array_equal(tau32, tau64)
+        assert np.array_equal(eng.inverse_dynamics(q, qd, qdd, z, fv, precision="f32"), tau32)
+        a64 = eng.forward_dynamics(q, qd, tau64, z, fv)
+        a32 = eng.forward_dynamics(q, qd, tau64, z, fv, precision="f32")
+        assert _rel(a32[None], a64[None]) < RTOL
+        assert _rel(a32[None], qdd[None]) < RTOL  # forward inverts inverse
+    # a single rollout (unbatched, and B = 1) runs the float32 single-sample pass
+    q1, qd1 = eng.rollout(b["q0"][0], b["qd0"][0], b["tau"][0], 0.005, z=b["z"][0], f_v=b["f_v"][0], precision="f32")
+    q64, qd64 = eng.rollout(b["q0"][0], b["qd0"][0], b["tau"][0], 0.005, z=b["z"][0], f_v=b["f_v"][0])
+    assert q1.shape == (21, 2) and _rel(q1[None], q64[None]) < RTOL and _rel(qd1[None], qd64[None]) < RTOL
+    qb, _ = eng.rollout(b["q0"][:1], b["qd0"][:1], b["tau"][:1], 0.005, z=b["z"][:1], f_v=b["f_v"][:1], precision="f32")
+    assert np.array_equal(qb[0], q1)
+    # errors: a bad precision, more than one sample, exo torques
+    q, z = b["q0"][0], b["z"][0, 0]
+    for bad in ("f16", "float32", "F32", ""):
+        with pytest.raises(ValueError, match='precision must be "f64" or "f32"'):
+            eng.inverse_dynamics(q, q, q, z, 1.0, precision=bad)
+        with pytest.raises(ValueError, match='precision must be "f64" or "f32"'):
+            eng.forward_dynamics(b["q0"], b["q0"], b["q0"], b["z"][:, 0], b["f_v"][:, 0], precision=bad)
+        with pytest.raises(ValueError, match='precision must be "f64" or "f32"'):
+            eng._e.inverse_dynamics_one(q, q, q, z, 1.0, bad)
+    with pytest.raises(ValueError, match='precision="f32" takes one plain sample'):
+        eng.inverse_dynamics(b["q0"], b["q0"], b["q0"], b["z"][:, 0], b["f_v"][:, 0], precision="f32")
+    with pytest.raises(ValueError, match="does not take exo torques"):
+        eng.forward_dynamics(q, q, q, z, 1.0, tau_e=q, precision="f32")
+    with pytest.raises(ValueError, match="non-finite input: q"):
+        eng.inverse_dynamics(np.array([0.1, np.nan]), q, q, z, 1.0, precision="f32")
+    from exolan.extensions import ExtendedModel
+
+    torch.manual_seed(2)
+    base = build_model("delan", lim=False, context_channels=CHANNELS, joint_names=("hip", "knee")).double()
+    ext = ExtendedModel(base, 2, [("viscous_damping", 0)], dt=0.005, init=dict(viscous_damping=0.5)).double()
+    eng_ext = Engine(export(ext, tmp_path / "ext.safetensors", {"dt": 0.005}))
+    with pytest.raises(ValueError, match="unsupported model: .*extension terms.*use float64"):
+        eng_ext.inverse_dynamics(q, q, q, precision="f32")
+    with pytest.raises(ValueError, match="unsupported model: .*extension terms.*use float64"):
+        eng_ext.rollout(q, q, np.zeros((5, 2)), 0.005, precision="f32")

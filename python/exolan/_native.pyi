@@ -74,11 +74,14 @@ class Engine:
     ) -> _F64:
         """q̈, flat (N·n,)."""
     def inverse_dynamics_one(
-        self, q: _F64, qd: _F64, qdd: _F64, z: _F64 | None = None, f_v: float | _F64 | None = None
+        self, q: _F64, qd: _F64, qdd: _F64, z: _F64 | None = None, f_v: float | _F64 | None = None,
+        precision: str = "f64",
     ) -> _F64:
-        """One sample ((n,) or (1, n)) with the GIL held; TypeError for anything else."""
+        """One sample ((n,) or (1, n)) with the GIL held; TypeError for anything else. precision "f64"
+        or "f32" (float32 pass, no extension terms; ValueError for anything else)."""
     def forward_dynamics_one(
-        self, q: _F64, qd: _F64, tau: _F64, z: _F64 | None = None, f_v: float | _F64 | None = None
+        self, q: _F64, qd: _F64, tau: _F64, z: _F64 | None = None, f_v: float | _F64 | None = None,
+        precision: str = "f64",
     ) -> _F64:
         """One sample, as inverse_dynamics_one."""
     def terms(self, q: _F64, qd: _F64, z: _F64 | None = None) -> _F64:

@@ -122,29 +122,34 @@ class Engine:
 
     # -- dynamics ----------------------------------------------------------------------------------
     def inverse_dynamics(self, q, qd, qdd, z=None, f_v=None, tau_e=None, tau_app=None, tau_app_d=None,
-                         tau_app_dd=None) -> np.ndarray:
+                         tau_app_dd=None, precision="f64") -> np.ndarray:
         """τ = H q̈ + c + g − B f_v (+ extension terms): the predicted recorded total torque, (..., n).
 
         tau_e: recorded exo torque (..., n) for the extension terms; tau_app = τ_e(t − d) (see
-        `applied_exo`), tau_app_d/_dd its time derivatives (strap compliance)."""
+        `applied_exo`), tau_app_d/_dd its time derivatives (strap compliance). `precision="f32"`: one
+        sample (n,) computed in float32 (float64 in and out; models without extension terms)."""
         if tau_e is None and tau_app is None and tau_app_d is None and tau_app_dd is None:
-            try:  # one plain float64 sample: the native fast path (TypeError: anything else)
-                return self._e.inverse_dynamics_one(q, qd, qdd, z, f_v)
+            try:  # one plain float64 sample: the native fast path (TypeError: anything else; ValueError: precision)
+                return self._e.inverse_dynamics_one(q, qd, qdd, z, f_v, precision)
             except TypeError:
-                pass
+                _only_f64(precision, "q, qd, qdd")
+        else:
+            _only_f64(precision, None)
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(qdd, "qdd", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead),
                 self._opt(tau_app_d, "tau_app_d", lead), self._opt(tau_app_dd, "tau_app_dd", lead))
         return self._e.inverse_dynamics(*args).reshape(lead + (self.n,))
 
-    def forward_dynamics(self, q, qd, tau, z=None, f_v=None, tau_e=None, tau_app=None) -> np.ndarray:
-        """q̈ = H⁻¹(τ + B f_v − c − g − extension terms), (..., n)."""
+    def forward_dynamics(self, q, qd, tau, z=None, f_v=None, tau_e=None, tau_app=None, precision="f64") -> np.ndarray:
+        """q̈ = H⁻¹(τ + B f_v − c − g − extension terms), (..., n); `precision` as `inverse_dynamics`."""
         if tau_e is None and tau_app is None:
             try:
-                return self._e.forward_dynamics_one(q, qd, tau, z, f_v)
+                return self._e.forward_dynamics_one(q, qd, tau, z, f_v, precision)
             except TypeError:
-                pass
+                _only_f64(precision, "q, qd, tau")
+        else:
+            _only_f64(precision, None)
         qf, lead = self._flat(q, "q")
         args = (qf, self._flat(qd, "qd", lead)[0], self._flat(tau, "tau", lead)[0], self._z(z, lead),
                 self._fv(f_v, lead), self._opt(tau_e, "tau_e", lead), self._opt(tau_app, "tau_app", lead))
@@ -168,7 +173,8 @@ class Engine:
         `threads` threads (default: one per core, the engine's own pool); the result is bit-identical
         for every thread count. `precision="f32"` computes in float32, 16 rollouts per SIMD register
         (inputs and outputs stay float64; agrees with "f64" to ~1e-6 relative over 20 steps on random
-        models; models without extension terms only; docs/ENGINE.md)."""
+        models; models without extension terms only; docs/ENGINE.md); unbatched, or B = 1, it runs the
+        float32 single-sample pass with the state integrated in float64."""
         n, dz = self.n, self.z_dim
         q0 = _f64(q0, "q0")
         batched = q0.ndim == 2
@@ -242,6 +248,17 @@ def _engine(model) -> Engine:
     if eng is None:
         eng = _CACHE[key] = Engine(p)
     return eng
+
+
+def _only_f64(precision, args) -> None:
+    """The batch path (several samples, or exo torques) runs float64 only: ValueError for anything else."""
+    if precision == "f64":
+        return
+    if precision != "f32":
+        raise ValueError(f'precision must be "f64" or "f32", got {precision!r}')
+    if args is None:
+        raise ValueError('precision="f32" does not take exo torques (models with extension terms need "f64")')
+    raise ValueError(f'precision="f32" takes one plain sample: {args} of shape (n,), z (dz,), f_v a number')
 
 
 def fast_rollout(model, q0, qd0, tau, dt=None, z=None, f_v=None, tau_e=None, threads=None, precision="f64"):
