@@ -45,3 +45,5 @@ pub use rollout::{Inputs, ZSeq};
 mod python;
 #[cfg(feature = "python")]
 mod python_conv;
+#[cfg(feature = "python")]
+mod python_engine;
