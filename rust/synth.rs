@@ -64,6 +64,20 @@ impl Rng {
     }
 }
 
+/// The model shapes every code path is tested on: TCN, LSTM and no encoder, with and without LIM, 1 and 3
+/// joints with a prismatic one (the general-n solve and φ layout).
+pub fn shapes() -> Vec<SynthConfig> {
+    let d = SynthConfig::default();
+    vec![
+        d.clone(),
+        SynthConfig { lim: false, seed: 2, ..d.clone() },
+        SynthConfig { encoder: "lstm", seed: 3, ..d.clone() },
+        SynthConfig { encoder: "none", seed: 4, ..d.clone() },
+        SynthConfig { joint_types: vec!["revolute", "prismatic", "revolute"], seed: 5, ..d.clone() },
+        SynthConfig { joint_types: vec!["prismatic"], encoder: "none", seed: 6, ..d },
+    ]
+}
+
 /// `count` deterministic pseudo-random values uniform in (−scale, scale): inputs for tests and benchmarks.
 pub fn pseudo(seed: u64, count: usize, scale: f64) -> Vec<f64> {
     Rng(seed).uniform(count, scale)

@@ -2,7 +2,7 @@
 //! derivatives against finite differences, inverse ∘ forward = identity, H symmetric positive
 //! definite, energy conservation, bit-identical batches across thread counts, clear errors.
 
-use exolan::synth::{pseudo, random_weights, SynthConfig};
+use exolan::synth::{pseudo, random_weights, shapes, SynthConfig};
 use exolan::{Error, Inputs, Model, Workspace, ZSeq};
 
 fn model(cfg: &SynthConfig) -> Model {
@@ -10,16 +10,7 @@ fn model(cfg: &SynthConfig) -> Model {
 }
 
 fn configs() -> Vec<SynthConfig> {
-    let d = SynthConfig::default();
-    vec![
-        d.clone(),
-        SynthConfig { lim: false, seed: 2, ..d.clone() },
-        SynthConfig { encoder: "lstm", seed: 3, ..d.clone() },
-        SynthConfig { encoder: "none", seed: 4, ..d.clone() },
-        // general n with a prismatic joint: exercises the non-2x2 solve and φ layout
-        SynthConfig { joint_types: vec!["revolute", "prismatic", "revolute"], seed: 5, ..d.clone() },
-        SynthConfig { joint_types: vec!["prismatic"], encoder: "none", seed: 6, ..d },
-    ]
+    shapes()
 }
 
 fn ws_with_z(m: &Model, seed: u64) -> Workspace {

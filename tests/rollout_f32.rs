@@ -1,7 +1,7 @@
 //! The float32 lane rollouts (`Model::rollout_batch_f32`) against the float64 batches: agreement to
 //! float32 rounding over 20 steps, determinism across runs and thread counts, lane independence, errors.
 
-use exolan::synth::{pseudo, random_weights, SynthConfig};
+use exolan::synth::{pseudo, random_weights, shapes, SynthConfig};
 use exolan::{Error, Inputs, LaneWorkspace, Model, Pool, Simd, Workspace, ZSeq};
 
 fn model(cfg: &SynthConfig) -> Model {
@@ -77,15 +77,7 @@ fn worst_rel(a: &[f64], b: &[f64], per: usize) -> f64 {
 
 #[test]
 fn f32_batches_agree_with_f64_batches() {
-    let d = SynthConfig::default();
-    let configs = [
-        d.clone(),
-        SynthConfig { lim: false, seed: 2, ..d.clone() },
-        SynthConfig { encoder: "lstm", seed: 3, ..d.clone() },
-        SynthConfig { encoder: "none", seed: 4, ..d.clone() },
-        SynthConfig { joint_types: vec!["revolute", "prismatic", "revolute"], seed: 5, ..d.clone() },
-        SynthConfig { joint_types: vec!["prismatic"], encoder: "none", seed: 6, ..d },
-    ];
+    let configs = shapes();
     let pool = Pool::new(2).unwrap();
     for cfg in configs {
         for level in [Simd::Portable, Simd::Avx2Fma, Simd::Avx512] {

@@ -2,21 +2,11 @@
 //! against the float64 ones: agreement to float32 rounding on every synthetic model shape and code
 //! path, determinism, consistency of a rollout with its steps, refusals.
 
-use exolan::synth::{random_weights, SynthConfig};
+use exolan::synth::{pseudo, random_weights, shapes, SynthConfig};
 use exolan::{Error, Inputs, Model, Simd, ZSeq};
 
 fn model(cfg: &SynthConfig) -> Model {
     Model::from_bytes(&random_weights(cfg)).expect("synthetic model loads")
-}
-
-fn pseudo(seed: u64, count: usize, scale: f64) -> Vec<f64> {
-    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-    (0..count)
-        .map(|_| {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            ((s >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * scale
-        })
-        .collect()
 }
 
 /// max |a − b| over max |b| (normwise relative).
@@ -27,17 +17,11 @@ fn rel(a: &[f64], b: &[f64]) -> f64 {
 
 fn configs() -> Vec<SynthConfig> {
     let d = SynthConfig::default();
-    vec![
-        d.clone(),
-        SynthConfig { lim: false, seed: 2, ..d.clone() },
-        SynthConfig { encoder: "lstm", seed: 3, ..d.clone() },
-        SynthConfig { encoder: "none", seed: 4, ..d.clone() },
-        SynthConfig { joint_types: vec!["revolute", "prismatic", "revolute"], seed: 5, ..d.clone() },
-        SynthConfig { joint_types: vec!["prismatic"], encoder: "none", seed: 6, ..d.clone() },
-        // widths that are not multiples of 16: the f32 register blocks' remainders
-        SynthConfig { hidden: 40, lim_hidden: 12, seed: 7, ..d.clone() },
-        SynthConfig { joint_types: vec!["revolute", "revolute", "revolute", "revolute"], hidden: 24, seed: 8, ..d },
-    ]
+    let mut v = shapes();
+    // widths that are not multiples of 16: the f32 register blocks' remainders
+    v.push(SynthConfig { hidden: 40, lim_hidden: 12, seed: 7, ..d.clone() });
+    v.push(SynthConfig { joint_types: vec!["revolute", "revolute", "revolute", "revolute"], hidden: 24, seed: 8, ..d });
+    v
 }
 
 /// Worst normwise relative differences f32 vs f64 (inverse τ, forward q̈) over `count` samples.
