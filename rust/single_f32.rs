@@ -20,8 +20,9 @@ impl Model {
         Workspace::build(self, LaneBufs::default())
     }
 
-    /// The checks every float32 call shares; q and q̇ into the workspace in float32.
-    fn prepare_f32(&self, ws: &mut Workspace<f32>, q: &[f64], qd: &[f64]) -> Result<()> {
+    /// The checks every float32 call shares (its other input, f_v, its output's length); q and q̇ into the
+    /// workspace in float32.
+    fn prepare_f32(&self, ws: &mut Workspace<f32>, q: &[f64], qd: &[f64], input: (&str, &[f64]), f_v: f64, out: (&str, usize)) -> Result<()> {
         let n = self.n;
         if self.ext.any() {
             return Err(Error::Unsupported("float32 single-sample calls run models without extension terms; use float64".into()));
@@ -34,6 +35,13 @@ impl Model {
         }
         check("q", q, n)?;
         check("qd", qd, n)?;
+        check(input.0, input.1, n)?;
+        if !f_v.is_finite() {
+            return Err(Error::NonFiniteInput("f_v".into()));
+        }
+        if out.1 != n {
+            return Err(Error::InputShape(format!("{} output has {} entries, expected {n}", out.0, out.1)));
+        }
         for i in 0..n {
             ws.qp[i] = q[i] as f32;
             ws.qdp[i] = qd[i] as f32;
@@ -63,14 +71,7 @@ impl Model {
     #[allow(clippy::too_many_arguments)]
     pub fn inverse_dynamics_f32(&self, ws: &mut Workspace<f32>, q: &[f64], qd: &[f64], qdd: &[f64], f_v: f64, tau: &mut [f64]) -> Result<()> {
         let n = self.n;
-        self.prepare_f32(ws, q, qd)?;
-        check("qdd", qdd, n)?;
-        if !f_v.is_finite() {
-            return Err(Error::NonFiniteInput("f_v".into()));
-        }
-        if tau.len() != n {
-            return Err(Error::InputShape(format!("tau output has {} entries, expected {n}", tau.len())));
-        }
+        self.prepare_f32(ws, q, qd, ("qdd", qdd), f_v, ("tau", tau.len()))?;
         for i in 0..n {
             ws.qddp[i] = qdd[i] as f32;
         }
@@ -91,14 +92,7 @@ impl Model {
     #[allow(clippy::too_many_arguments)]
     pub fn forward_dynamics_f32(&self, ws: &mut Workspace<f32>, q: &[f64], qd: &[f64], tau: &[f64], f_v: f64, qdd: &mut [f64]) -> Result<()> {
         let n = self.n;
-        self.prepare_f32(ws, q, qd)?;
-        check("tau", tau, n)?;
-        if !f_v.is_finite() {
-            return Err(Error::NonFiniteInput("f_v".into()));
-        }
-        if qdd.len() != n {
-            return Err(Error::InputShape(format!("qdd output has {} entries, expected {n}", qdd.len())));
-        }
+        self.prepare_f32(ws, q, qd, ("tau", tau), f_v, ("qdd", qdd.len()))?;
         self.eval_f32(ws);
         self.qdd_f32(ws, tau, f_v)?;
         for i in 0..n {
