@@ -438,6 +438,26 @@ class JointProblem:
         coef, se, L = self._hac(X[tr], (self.y - off)[tr], sub)
         return coef, se, Fit(terms=list(f.terms), theta=th, names=names, nu=f.nu, pred=X @ th + off, lags=L)
 
+    def by_trial(self, f: Fit, effect: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`effect`'s parameter in each trial (`consistency`): `f` refitted with the term's column split into one
+        column per trial (every other column shared); a fixed term (a delay) by its linearisation in ν around
+        f's value. Returns (estimate by trial, HAC SE by trial, the trials); trials without training rows are
+        left out."""
+        X, names, off = self._design(f.terms, f.nu)
+        t = TERMS[effect]
+        if t.fixed:
+            col, center, keep = np.nan_to_num(self.sig.lp(t.dcol(self.sig, self.j, f.nu[effect]))), f.nu[effect], X
+        else:       # the unsplit column: a subject split's columns are masked copies of it
+            idx = [i for i, n in enumerate(names) if n.split("#")[0] == effect]
+            col, center, keep = X[:, idx].sum(1), 0.0, np.delete(X, idx, axis=1)
+        tr = self.train
+        trials = np.array([k for k in np.unique(self.sig.trial[tr])
+                           if np.any(col[tr & (self.sig.trial == k)] != 0)], dtype=int)
+        Xs = np.concatenate([keep] + [(col * (self.sig.trial == k))[:, None] for k in trials], 1)
+        sub = list(range(keep.shape[1], Xs.shape[1]))
+        coef, se, _ = self._hac(Xs[tr], (self.y - off)[tr], sub)
+        return center + coef, se, trials
+
     def held_sq(self, f: Fit, rows: np.ndarray | None = None) -> np.ndarray:
         """Squared error against the recorded (unfiltered) τ, mass-normalised, on the held-out rows (or `rows`:
         NaN where the filtered signals are not usable)."""

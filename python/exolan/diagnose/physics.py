@@ -14,7 +14,9 @@ Rule, in plain words (the report states it):
    α/(m − r), α = 5 %: the family-wise level of every accept decision together is α. Where it fails, selection
    stops.
 3. The held-out check can only remove a term: the model with it must beat the model without it on the held-out
-   segments (paired squared errors, block-bootstrap 95 % CI above 0).
+   segments (paired squared errors, block-bootstrap 95 % CI above 0). So can the recordings' check
+   (`consistency`): fitted trial by trial, the term's 95 % prediction interval for a new recording must lie on the
+   physical side of no effect — a constant of the joint, not a shape of the base's misfit.
 4. Rivals (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap): an accepted term whose rival, put in its
    place, is significant there (same threshold) and not worse on held-out data (CI of the difference reaching
    0) is `ambiguous` with it — unless one reduces to the other (Stribeck to Coulomb): the simpler is taken.
@@ -32,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..runio import jsonable
-from . import ident, stats, wls
+from . import consistency, ident, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
 
 Z95 = 1.959963984540054
@@ -259,6 +261,12 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but its size is not identified: the "
                                               f"interval {_ci_text(te.ci)} reaches infinity")
             continue
+        rec["consistency"] = cons = across_trials(probs[j], f, e, split, flat)
+        if cons["consistent"] is False:
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but "
+                                              + consistency.text(cons, te.estimate))
+            log(f"physics: {e} on {flat.joints[j]} rejected: its size changes between recordings")
+            continue
         if gain["ci"][0] <= 0:
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
                                               f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
@@ -295,6 +303,19 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     res.seconds = time.time() - t0
     res._probs, res._fits = probs, cur      # for the cross-check and the extended model
     return res
+
+
+def across_trials(prob: ident.JointProblem, f: ident.Fit, e: str, split: bool, flat) -> dict:
+    """The term's size in each trial, pooled (`consistency`): over every trial, or, for a term split by subject
+    (an effect in at least one subject), over each subject's trials — consistent where any subject's is."""
+    th, se, trials = prob.by_trial(f, e)
+    sided = ident.TERMS[e].sided
+    if not split:
+        return consistency.pooled(th, se, sided)
+    subj = np.array([flat.trial_meta[k]["subject"] for k in trials])
+    per = {str(u): consistency.pooled(th[subj == u], se[subj == u], sided) for u in np.unique(subj)}
+    known = [v["consistent"] for v in per.values() if v["consistent"] is not None]
+    return dict(by_subject=per, consistent=any(known) if known else None)
 
 
 def _test(prob: ident.JointProblem, accepted: list, e: str, masks) -> tuple:
@@ -377,8 +398,8 @@ def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:
 
 
 def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
-    """Rule 4: an accepted term and a rival that explains the held-out data as well are ambiguous (or the
-    simpler of a nested pair is taken)."""
+    """Rule 4: an accepted term and a rival that explains the held-out data as well, and is a constant of the joint
+    too (`across_trials`), are ambiguous (or the simpler of a nested pair is taken)."""
     for j, terms in accepted.items():
         for e in list(terms):
             for rv in rivals(e):
@@ -388,6 +409,8 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                 alt = probs[j].fit(alt_terms)
                 if _p(probs[j], alt, rv) > thr:
                     continue
+                if across_trials(probs[j], alt, rv, rv in alt.split, flat)["consistent"] is False:
+                    continue                # a rival that is no constant of the joint explains nothing physical
                 d = _held_gain(probs[j].held_sq(alt), probs[j].held_sq(cur[j]), n_boot)    # > 0: e is better
                 if d["ci"][0] > 0:
                     continue
