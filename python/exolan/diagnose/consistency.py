@@ -20,6 +20,8 @@ import numpy as np
 from scipy import stats as sps
 from statsmodels.stats.meta_analysis import combine_effects
 
+from . import ident
+
 MIN_TRIALS = 3
 
 
@@ -53,3 +55,17 @@ def text(c: dict, estimate: float) -> str:
     return (f"its size (here {estimate:.4g}) is not a constant of the joint: fitted recording by recording it changes "
             f"more than its intervals allow, and a new recording's 95 % prediction interval holds no effect ({said}); "
             "a misfit of the base that follows the motion looks like this")
+
+
+def across_trials(prob: ident.JointProblem, f: ident.Fit, e: str, split: bool, flat) -> dict:
+    """The term's size in each trial (`ident.JointProblem.by_trial`), pooled: over every trial, or, for a term
+    split by subject (an effect in at least one subject), over each subject's trials — consistent where any
+    subject's is."""
+    th, se, trials = prob.by_trial(f, e)
+    sided = ident.TERMS[e].sided
+    if not split:
+        return pooled(th, se, sided)
+    subj = np.array([flat.trial_meta[k]["subject"] for k in trials])
+    per = {str(u): pooled(th[subj == u], se[subj == u], sided) for u in np.unique(subj)}
+    known = [v["consistent"] for v in per.values() if v["consistent"] is not None]
+    return dict(by_subject=per, consistent=any(known) if known else None)

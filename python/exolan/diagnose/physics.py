@@ -261,7 +261,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but its size is not identified: the "
                                               f"interval {_ci_text(te.ci)} reaches infinity")
             continue
-        rec["consistency"] = cons = across_trials(probs[j], f, e, split, flat)
+        rec["consistency"] = cons = consistency.across_trials(probs[j], f, e, split, flat)
         if cons["consistent"] is False:
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but "
                                               + consistency.text(cons, te.estimate))
@@ -303,19 +303,6 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     res.seconds = time.time() - t0
     res._probs, res._fits = probs, cur      # for the cross-check and the extended model
     return res
-
-
-def across_trials(prob: ident.JointProblem, f: ident.Fit, e: str, split: bool, flat) -> dict:
-    """The term's size in each trial, pooled (`consistency`): over every trial, or, for a term split by subject
-    (an effect in at least one subject), over each subject's trials — consistent where any subject's is."""
-    th, se, trials = prob.by_trial(f, e)
-    sided = ident.TERMS[e].sided
-    if not split:
-        return consistency.pooled(th, se, sided)
-    subj = np.array([flat.trial_meta[k]["subject"] for k in trials])
-    per = {str(u): consistency.pooled(th[subj == u], se[subj == u], sided) for u in np.unique(subj)}
-    known = [v["consistent"] for v in per.values() if v["consistent"] is not None]
-    return dict(by_subject=per, consistent=any(known) if known else None)
 
 
 def _test(prob: ident.JointProblem, accepted: list, e: str, masks) -> tuple:
@@ -399,7 +386,7 @@ def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:
 
 def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
     """Rule 4: an accepted term and a rival that explains the held-out data as well, and is a constant of the joint
-    too (`across_trials`), are ambiguous (or the simpler of a nested pair is taken)."""
+    too (`consistency.across_trials`), are ambiguous (or the simpler of a nested pair is taken)."""
     for j, terms in accepted.items():
         for e in list(terms):
             for rv in rivals(e):
@@ -409,7 +396,7 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                 alt = probs[j].fit(alt_terms)
                 if _p(probs[j], alt, rv) > thr:
                     continue
-                if across_trials(probs[j], alt, rv, rv in alt.split, flat)["consistent"] is False:
+                if consistency.across_trials(probs[j], alt, rv, rv in alt.split, flat)["consistent"] is False:
                     continue                # a rival that is no constant of the joint explains nothing physical
                 d = _held_gain(probs[j].held_sq(alt), probs[j].held_sq(cur[j]), n_boot)    # > 0: e is better
                 if d["ci"][0] > 0:
