@@ -2,15 +2,13 @@
 joint. On drives whose Coulomb friction is planted recording by recording: the per-recording sizes are recovered,
 a friction that changes between recordings (as a misfit that follows the motion does) is rejected although it is
 significant over all of them, and the same friction at one size in every recording is accepted."""
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 
 from exolan.diagnose import consistency, physics
 from exolan.diagnose.candidates import FITTED
 from exolan.diagnose.flat import prepare
-from exolan.diagnose.synthetic import servo_drive
+from exolan.diagnose.synthetic import servo_trial
 
 
 def test_pooled_estimates_that_agree_are_consistent_and_a_scatter_around_zero_is_not():
@@ -30,15 +28,8 @@ def test_pooled_estimates_that_agree_are_consistent_and_a_scatter_around_zero_is
 
 
 def _recordings(coulombs, viscous=200.0, seconds=8.0):
-    out = []
-    for k, c in enumerate(coulombs):
-        t, x, F, _ = servo_drive(seed=100 + k, seconds=seconds, mass=95.0, viscous=viscous, coulomb=c, offset=-3.0)
-        out.append(SimpleNamespace(subject="S", task="bench", name=f"run{k}", side="", mass=1.0, dt=0.001,
-                                   joints=("x",), joint_types=("prismatic",), q=x[:, None],
-                                   qd=np.gradient(x, 0.001)[:, None], qdd=np.zeros((len(x), 1)), tau=F[:, None],
-                                   tau_e=np.zeros((len(x), 1)), f_v=np.zeros(len(x)),
-                                   cop=np.full((len(x), 2), np.nan), valid=np.ones(len(x), bool)))
-    return prepare(out)
+    return prepare([servo_trial(f"run{k}", seconds=seconds, seed=100 + k, mass=95.0, viscous=viscous, coulomb=c,
+                                offset=-3.0) for k, c in enumerate(coulombs)])
 
 
 @pytest.mark.parametrize("coulombs, taken", [((40.0, 10.0, 30.0, 12.0, 45.0, 8.0), False),

@@ -19,7 +19,7 @@ import pytest
 from exolan.diagnose import physics, wls
 from exolan.diagnose.candidates import FITTED
 from exolan.diagnose.flat import prepare
-from exolan.diagnose.synthetic import servo_drive, write_layout2
+from exolan.diagnose.synthetic import servo_drive, servo_trial, write_layout2
 from exolan.data import load
 
 CLI = "import sys; from exolan.cli import main; sys.exit(main(sys.argv[1:]))"
@@ -83,12 +83,7 @@ def test_physics_first_family_wise_level_on_clean_drives():
     false = 0
     for seed in np.random.default_rng().integers(10_000, size=10):
         truth = dict(_draw(np.random.default_rng(int(seed))), viscous=0.0, coulomb=0.0)
-        t, x, F, _ = servo_drive(seed=int(seed), seconds=10.0, **truth)
-        from types import SimpleNamespace
-        tr = SimpleNamespace(subject="S", task="bench", name="clean", side="", mass=1.0, dt=0.001, joints=("x",),
-                             joint_types=("prismatic",), q=x[:, None], qd=np.gradient(x, 0.001)[:, None],
-                             qdd=np.zeros((len(x), 1)), tau=F[:, None], tau_e=np.zeros((len(x), 1)),
-                             f_v=np.zeros(len(x)), cop=np.full((len(x), 2), np.nan), valid=np.ones(len(x), bool))
+        tr = servo_trial("clean", seed=int(seed), seconds=10.0, **truth)
         res = physics.identify(prepare([tr]), FITTED, [0])
         false += bool(res.accepted)
     assert false <= 2
@@ -103,12 +98,7 @@ def test_physics_first_sizes_one_friction_without_the_other(effect):
         truth["coulomb"] = 0.0
     else:
         truth["viscous"] = 0.0
-    t, x, F, _ = servo_drive(seed=seed, **truth)
-    from types import SimpleNamespace
-    tr = SimpleNamespace(subject="S", task="bench", name="d", side="", mass=1.0, dt=0.001, joints=("x",),
-                         joint_types=("prismatic",), q=x[:, None], qd=np.gradient(x, 0.001)[:, None],
-                         qdd=np.zeros((len(x), 1)), tau=F[:, None], tau_e=np.zeros((len(x), 1)),
-                         f_v=np.zeros(len(x)), cop=np.full((len(x), 2), np.nan), valid=np.ones(len(x), bool))
+    tr = servo_trial("d", seed=seed, **truth)
     res = physics.identify(prepare([tr]), FITTED, [0])
     msg = f"seed {seed}, truth {truth}: {res.summary(('x',))}"
     assert [e for e, _ in res.accepted] == [effect], msg
@@ -197,12 +187,7 @@ def test_an_interval_through_the_reported_parameters_pole_reaches_infinity():
 
 
 def _drive_trial(subject: str, seed: int, **truth):
-    from types import SimpleNamespace
-    t, x, F, _ = servo_drive(seed=seed, seconds=15.0, **truth)
-    return SimpleNamespace(subject=subject, task="bench", name=f"{subject}_d", side="", mass=1.0, dt=0.001,
-                           joints=("x",), joint_types=("prismatic",), q=x[:, None], qd=np.gradient(x, 0.001)[:, None],
-                           qdd=np.zeros((len(x), 1)), tau=F[:, None], tau_e=np.zeros((len(x), 1)), f_v=np.zeros(len(x)),
-                           cop=np.full((len(x), 2), np.nan), valid=np.ones(len(x), bool))
+    return servo_trial(f"{subject}_d", subject=subject, seconds=15.0, seed=seed, **truth)
 
 
 @pytest.mark.parametrize("viscous, coulomb, want", [

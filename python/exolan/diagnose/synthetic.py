@@ -156,6 +156,14 @@ def servo_drive(seconds: float = 25.0, dt: float = 0.001, seed: int = 0, mass: f
     return np.arange(T) * dt, x, F_rec, truth
 
 
+def servo_trial(name: str, subject: str = "S", seconds: float = 25.0, seed: int = 0, **truth):
+    """One `servo_drive` recording as a duck-typed trial (layout 2: force in N, x in m, q̇ by differences)."""
+    t, x, F, _ = servo_drive(seconds=seconds, seed=seed, **truth)
+    dt = float(t[1] - t[0])
+    return _trial(name, dt, ("x",), ("prismatic",), x[:, None], np.gradient(x, dt)[:, None],
+                  np.zeros((len(x), 1)), F[:, None], subject=subject)
+
+
 def write_layout2(path, time: np.ndarray, q: np.ndarray, tau: np.ndarray, joint: str = "x",
                   joint_type: str = "prismatic") -> None:
     """A 1-DoF layout-2 recording (DATA_LAYOUT.md): <path>.csv (time, q_<joint>, tau_<joint>) and <path>.json."""
