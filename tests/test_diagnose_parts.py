@@ -448,6 +448,16 @@ def _open_tools(**over) -> dict:
     return tools
 
 
+def _held_look_closed(**k) -> dict:
+    """A `confirm` stub open for every comparison but step 7's first look (the reference's refit with the terms
+    held), which fails: the extended model then reaches its look at the fit from scratch."""
+    def stub(*a, look="", **kw):
+        g = dict(confirm(*a, **kw), passes=True)
+        return dict(g, passes=False) if look == "extended: reference refit held" else g
+
+    return dict(confirm=stub, **k)
+
+
 def rules_paired(*a, **k):
     from exolan.diagnose.secondlook import paired_confirm
 
@@ -497,9 +507,9 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
     after the further term's own share of its fit cleared the floor; the report carries both comparisons, and
     the verdict decides. Step 7's fit from scratch, its cross-seed comparison forced to fail with a positive
     gain, is judged by the same second look (the verdict forced again) at its share of the confirmation's level:
-    the set so accepted, or the first term alone, each over the fits that forward selection made (none made
-    again; the term-free base fitted at the seeds beyond the optimum twins'). Where that verdict fails, the
-    reference's refit with the terms held there confirms the first term."""
+    the set so accepted (its first look, the reference's refit with the terms held, closed), over the fits that
+    forward selection made (none made again; the term-free base fitted at the seeds beyond the optimum twins').
+    Where the verdict fails, the first term alone is confirmed by that first look."""
     calls, step7 = [], []
 
     def confirm_stub(*a, look="", **k):
@@ -508,6 +518,8 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
             step7.append(g)
         if look == "forward: cross-seed" or look == "extended: from scratch":
             g = dict(g, passes=False, gain=abs(g["gain"]) + 1e-12)
+        if look == "extended: reference refit held" and verdict:     # closed: step 7 reaches its second look
+            g = dict(g, passes=False)
         return g
 
     def paired(pairs, groups, kind, s, alpha):
@@ -517,11 +529,12 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
     rep, fits = _linear_drive_with_rules_open(tmp_path, coulomb=4.0, tools=dict(confirm=confirm_stub,
                                                                                  paired_confirm=paired))
     K = Settings().n_paired + 1
-    # forward selection's second look at half the Holm level of the second term (m = 2: 5 %), step 7's at a
-    # third of the confirmation's 5 %
-    assert [c["k"] for c in calls] == [K, K]
-    assert calls[0]["alpha"] == pytest.approx(0.025) and calls[1]["alpha"] == pytest.approx(0.05 / 3)
-    assert len(step7) == (1 if verdict else 2)      # the reference's refit with the terms held where it fails
+    # forward selection's second look at half the Holm level of the second term (m = 2: 5 %), step 7's (where its
+    # first look, the reference's refit with the terms held, is closed) at a third of the confirmation's 5 %
+    assert [c["k"] for c in calls] == ([K, K] if verdict else [K])
+    assert calls[0]["alpha"] == pytest.approx(0.025)
+    assert not verdict or calls[1]["alpha"] == pytest.approx(0.05 / 3)
+    assert len(step7) == (2 if verdict else 1)      # the held look, then (closed) the fit from scratch
     everything = rep["findings"] + rep["rejected"]
     second = [e for e in everything if "conditional_gain" in e]
     assert len(second) == 1
@@ -535,7 +548,8 @@ def test_forward_selection_tries_a_further_term_paired_over_seeds_where_the_cros
     pair = [f for f in fits if len(f) == 2]
     assert len(alone) == K and len(pair) == K
     assert (e["status"] == "accepted") is verdict
-    assert len([f for f in fits if not f]) == K - 1
+    # the term-free base at the optimum twins' seeds, and beyond them where step 7's second look is made
+    assert len([f for f in fits if not f]) == (K - 1 if verdict else Settings().n_optima)
     cf = rep["extended"]["confirmation"]
     if verdict:
         assert sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
@@ -555,8 +569,9 @@ def test_forward_selection_confirms_a_further_term_from_scratch(tmp_path):
     the further term is refitted with the accepted one from scratch, the report carries that comparison, and
     the extended model is the cached from-scratch fit of the final set (no third fit), its terms the reported
     estimates. Both comparisons of fits from scratch combine the trials' gains beyond the noise between optima,
-    measured once by the term-free base fitted at `n_optima` other seeds."""
-    rep, fits = _linear_drive_with_rules_open(tmp_path)
+    measured once by the term-free base fitted at `n_optima` other seeds (step 7's first look, the reference's
+    refit with the terms held, closed)."""
+    rep, fits = _linear_drive_with_rules_open(tmp_path, tools=_held_look_closed())
     second = [e for e in rep["findings"] if "conditional_gain" in e]
     assert len(second) == 1 and "from_scratch" in second[0]["conditional_gain"]
     cg = second[0]["conditional_gain"]     # the user's unweighted gain is reported beside the decision's
@@ -583,8 +598,8 @@ def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(
         calls.append((tuple(e for e, _ in effects), confused))
         return refits.fresh_fit(flat, s, effects, init, start, confused=confused)
 
-    rep, _ = _linear_drive_with_rules_open(tmp_path, tools=dict(fresh_fit=recorded,
-                                                                inertia_confused=("viscous_damping",)))
+    rep, _ = _linear_drive_with_rules_open(tmp_path, tools=_held_look_closed(fresh_fit=recorded,
+                                                                             inertia_confused=("viscous_damping",)))
     assert sorted(rep["extended"]["terms"]) == ["coulomb_friction:x", "viscous_damping:x"]
     first = next(e for e in rep["findings"] if "conditional_gain" not in e)["effect"]
     # the model without the further term takes the recipe of the one with it (the damping's)
@@ -602,17 +617,17 @@ def test_a_fit_with_another_recipe_is_judged_against_a_base_fitted_the_same_way(
 
 
 def _fresh_extended_loses(held_too: bool = False) -> tuple[list, dict]:
-    """A `confirm` stub that makes the extended model's first look (the fit from scratch) lose; with `held_too`
-    its last one (the reference's refit with the terms held) as well. Forward selection's comparisons of two
-    fits from scratch stay open. Returns the record of the extended model's looks and the stubs."""
+    """A `confirm` stub that makes the extended model's look at its fit from scratch lose; with `held_too` its
+    look at the reference's refit with the terms held as well. Forward selection's comparisons of two fits from
+    scratch stay open. Returns the record of the extended model's looks (by name) and the stubs."""
     calls = []
 
     def confirm_stub(*a, look="", **k):
         g = dict(confirm(*a, **k), passes=True)
         if not look.startswith("extended"):
             return g
-        calls.append(g["gain"])
-        if len(calls) == 1 or held_too:
+        calls.append(look)
+        if look == "extended: from scratch" or held_too:
             g = dict(g, gain=-abs(g["gain"]), ci=[-2 * abs(g["gain"]) - 1e-9, -1e-12], passes=False)
         return g
 
@@ -621,9 +636,10 @@ def _fresh_extended_loses(held_too: bool = False) -> tuple[list, dict]:
 
 def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_references_refit_at_its_estimates(
         tmp_path):
-    """Step 7: where the fit from scratch does not beat the reference, the reference's own refit with the terms
-    held at the same (joint) estimates is tried; when it confirms, it is the model handed over, still carrying the
-    reported estimates; when it does not either, the terms are ambiguous and the reason gives both comparisons."""
+    """Step 7: the reference's own refit with the terms held at the (joint) estimates of their fit from scratch is
+    the first look (one warm refit); when it confirms, it is the model handed over, still carrying the reported
+    estimates, and the fit from scratch is not compared (no term-free fits at other seeds); when it does not and
+    the fit from scratch loses too, the terms are ambiguous and the reason gives both comparisons."""
     around = []
 
     def spy(base, fresh, flat, s, effects):
@@ -633,7 +649,7 @@ def test_an_extended_model_whose_fit_from_scratch_loses_is_confirmed_by_the_refe
 
     calls, stubs = _fresh_extended_loses()
     rep, _ = _linear_drive_with_rules_open(tmp_path / "a", tools=dict(stubs, around_estimates=spy))
-    assert len(calls) == 2 and len(around) == 1
+    assert calls == ["extended: reference refit held"] and len(around) == 1
     assert rep["extended"]["model"].startswith("the reference's refit with the terms held")
     fresh, m = around[0]
     for f in rep["findings"]:
@@ -766,7 +782,7 @@ def test_a_friction_whose_warm_refit_fails_is_fitted_from_scratch_at_every_seed_
         seen.clear(), fits.clear()
         rep = diagnose(trials, out=tmp_path / str(verdict), quick=True, hidden=8, steps_base=150, steps_refit=60,
                        physics_first=False, effects=("viscous_damping", "coulomb_friction"), verbose=False,
-                       tools=tools)
+                       tools=tools, rescue_frictions=True)
         tried = {e["effect"]: e for e in rep["findings"] + rep["rejected"] if "from_scratch" in e}
         # the term-free base at n_optima other minibatch seeds, fitted once and shared by every comparison, and at
         # the paired comparison's further seeds once when one is made
@@ -1443,8 +1459,8 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it():
 def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path):
     """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
     term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
-    and compared there; the sizes start equal. The form taken is the extended model (no third fit from scratch)
-    and the report says how the forms were compared. Rules forced open: the sizes win; then the switch wins
+    and compared there; the sizes start equal. The form taken is the extended model's fit (no third fit from
+    scratch), its estimates held in the model handed over, and the report says how the forms were compared. Rules forced open: the sizes win; then the switch wins
     where the sizes' fit from scratch does not beat it, and where it does but fails rule 5 against it."""
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
@@ -1506,7 +1522,8 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
     assert f["subject_form"]["kind"] == "sizes"
     assert f["subject_form"]["advantage_over_switch"]["fitted"] == "from scratch"
     assert len(f["subject_form"]["log_sizes_from_scratch"]) == 2
-    assert rep["extended"]["model"] == "fitted from scratch with the terms"
+    # handed over by step 7's first look: the reference's refit with the terms held at that fit's estimates
+    assert rep["extended"]["model"].startswith("the reference's refit with the terms held")
     assert rep["extended"]["parameters"]["viscous_damping:x"] == fits[1][1].estimate("viscous_damping", 0)
     assert set(f["estimate_by_subject"]) == {"S01", "S02"}
     assert "(both fitted from scratch)" in (tmp_path / "a" / "diagnosis.md").read_text()

@@ -239,10 +239,12 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
                    help="skip the physics-first identification against a parametric rigid-body base; size the terms "
                         "jointly with the learned base only")
     p.add_argument("--no-rescue", action="store_true",
-                   help="do not fit a friction from scratch where its warm refit fails the gain rules (saves a base "
-                        "fit per such friction, and the term-free fits below when nothing else needs them), nor try a "
-                        "further term (in forward selection) or the extended model paired over seeds where its "
-                        "cross-seed comparison fails")
+                   help="do not try a further term (in forward selection) or the extended model paired over seeds "
+                        "where its cross-seed comparison fails (and no --rescue-frictions)")
+    p.add_argument("--rescue-frictions", action="store_true",
+                   help="on the learned path, fit a friction from scratch where its warm refit fails the gain rules "
+                        "(the base may have absorbed it), paired over seeds: up to 13 more base fits (off by default: "
+                        "physics first sizes absorbed dissipation where its parametric base is adequate)")
     p.add_argument("--optima", type=_at_least_one, default=None, metavar="N",
                    help="term-free fits from scratch at N other seeds that measure the noise between optima, against "
                         "which every fit from scratch is judged (default 2; at least 1: the noise needs a twin)")

@@ -172,6 +172,8 @@ def cli_diagnose(args) -> int:
         settings["inject_delay"] = True
     if getattr(args, "no_rescue", False):
         settings["rescue"] = False
+    if getattr(args, "rescue_frictions", False):
+        settings["rescue_frictions"] = True
     if getattr(args, "optima", None) is not None:
         settings["n_optima"] = args.optima
     if getattr(args, "paired_seeds", None) is not None:

@@ -45,49 +45,31 @@ def joint_fit(ss, results: list, acc_init: dict):
 
 def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
     """Rule 1 once more for the model handed over: with the accepted terms at their joint estimates it must beat
-    its base on held-out data. Where the base was fitted here, up to three looks share the confirmation's level:
-    the fit from scratch against a base fitted the same way beyond the noise between optima (or the second look
-    already made for these terms), its second look paired over seeds, and the reference's own refit with the
-    terms held there beyond the refit noise. The first look that passes hands its model over."""
+    its base on held-out data. Where the base was fitted here, up to three looks share the confirmation's level
+    (Bonferroni, so the order decides only which model is handed over and what is computed, never whether the
+    terms are confirmed): a second look already paired over seeds for these terms (made, free), the reference's
+    own refit with the terms held at the estimates of their fit from scratch beyond the refit noise (one warm
+    refit), the fit from scratch against a base fitted the same way beyond the noise between optima (term-free
+    fits from scratch at other seeds), and that fit's second look paired over seeds. The first look that passes
+    hands its model over; the cheapest comes first."""
     s, two = ss.s, ss.from_scratch
     effs = [(e["effect"], ss.flat.joints.index(e["joint"])) for e in accepted]
     key = tuple(sorted(effs))
     alpha = ss.budget.confirmation((3 if s.rescue else 2) if two else 1)
     u_ext, d_ext = ss.errors(model)
-    u_0, e_0, base_0, between = ss.e_ref_user, ss.e_ref, "the reference", None
-    if two:
-        u_0, e_0, between = ss.cache.optima(key)
-        if ss.cache.recipe(effs):
-            base_0 = "a base fitted from scratch with the same recipe"
-    against = f" (against {base_0})" if e_0 is not ss.e_ref else ""
-    noise = "between optima (term-free fits from scratch at other seeds)" if between else None
+    base_0 = "a base fitted from scratch with the same recipe" if two and ss.cache.recipe(effs) else "the reference"
     by_seeds = lambda pr: dict({k: v for k, v in pr.items() if k not in ("twins", "d", "models", "looked")},  # noqa: E731
                                scale=ss.scale, against=base_0,
                                noise=f"the spread of the paired gains over {pr['seeds']} seeds")
+    out = dict(confirmed=False, model=model, u_ext=u_ext, effs=effs,
+               how=("fitted from scratch with the terms" + (f" (against {base_0})" if base_0 != "the reference" else "")
+                    if two else "the given model refitted with the terms (warm start)"))
     pr = ss.cache.paired.get(key) if two else None
-    if pr is not None:      # the more powerful of the two looks at the same fit, made already (the rescue)
-        g_dec, confirmed = by_seeds(pr), pr["confirmed"]
-        tried = gci(g_dec) + f" from scratch paired over {pr['seeds']} seeds" + (
-            "" if confirmed else ": " + (", ".join(paired_failures(paired_record(pr), pr["user_gain"])) or "fails"))
-    else:
-        g_dec = dict(ss.confirm(e_0, d_ext, alpha, twins=between, look="extended: from scratch" if two else
-                                "extended: warm"), scale=ss.scale, against=base_0, noise=noise)
-        confirmed = bool(g_dec["passes"] and ss.tools.user_improves(u_0, u_ext))
-        tried = gci(g_dec) + (" from scratch" + against if two else "")
-    if not confirmed:
-        ss.log(f"extended {effs}: {tried} ({ss.scale}, {g_dec.get('combination', 'pooled')}): fails")
-    out = dict(confirmed=confirmed, model=model, u_ext=u_ext, confirmation=g_dec, effs=effs, how=(
-        "fitted from scratch with the terms" + against if two else "the given model refitted with the terms (warm start)"))
-    if not confirmed and two and pr is None and s.rescue and g_dec["gain"] > 0:
-        pr = ss.second_look(key, dict(acc_init), model, (u_ext, d_ext), alpha)
-        if pr["looked"] and pr["confirmed"]:
-            out.update(confirmed=True, confirmation=by_seeds(pr))
-        elif pr["looked"]:
-            tried += (f", {gci(by_seeds(pr))} paired over {pr['seeds']} seeds: "
-                      + (", ".join(paired_failures(paired_record(pr), pr["user_gain"])) or "fails"))
-        else:
-            tried += (f"; switched off, the terms cost that fit only {gci(pr['terms_share'])}: within the refit noise "
-                      "floor (not fitted at other seeds)")
+    tried = []
+    if pr is not None:      # the more powerful look at the same fit, made already (the rescue)
+        out.update(confirmed=pr["confirmed"], confirmation=by_seeds(pr))
+        tried.append(gci(by_seeds(pr)) + f" from scratch paired over {pr['seeds']} seeds" + (
+            "" if pr["confirmed"] else ": " + (", ".join(paired_failures(paired_record(pr), pr["user_gain"])) or "fails")))
     if not out["confirmed"] and two:
         held_at = ss.tools.around_estimates(ss.base, model, ss.flat, s, effs)
         u_h, d_h = ss.errors(held_at)
@@ -98,15 +80,47 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
         if g_h["passes"] and ss.tools.user_improves(ss.e_ref_user, u_h):
             out.update(confirmed=True, model=held_at, u_ext=u_h, confirmation=g_h,
                        how="the reference's refit with the terms held at the estimates of their fit from scratch")
-        tried += f", {gci(g_h)} as the reference's refit with the terms held there (beyond the refit noise required)"
+        tried.append(f"{gci(g_h)} as the reference's refit with the terms held there (beyond the refit noise required)")
+    if not out["confirmed"] and pr is None:
+        _from_scratch_look(ss, out, key, alpha, (u_ext, d_ext), base_0, by_seeds, tried, acc_init)
     if not out["confirmed"]:
         for e in accepted:
             e.update(status="ambiguous", reason=(
                 f"passed every rule term by term (estimate {e['estimate']:.4g}), but the extended model with all "
-                f"accepted terms at their joint estimates does not beat the base on held-out data: {tried} "
-                f"({ss.scale}{f', each look at {100 * (1 - alpha):.2f} %' if two else ''})"))
+                f"accepted terms at their joint estimates does not beat the base on held-out data: "
+                f"{', '.join(tried)} ({ss.scale}{f', each look at {100 * (1 - alpha):.2f} %' if two else ''})"))
             ss.log(f"{e['effect']} {e['joint']}: {e['reason']}")
     return out
+
+
+def _from_scratch_look(ss, out: dict, key: tuple, alpha: float, errors: tuple, base_0: str, by_seeds,
+                       tried: list, acc_init: dict) -> None:
+    """`confirm_model`'s look at the fit itself: from scratch against a base fitted the same way beyond the noise
+    between optima (a given model: the warm refit against the reference), then, where it gained but did not pass,
+    its second look paired over seeds (`Settings.rescue`)."""
+    s, two, model, (u_ext, d_ext) = ss.s, ss.from_scratch, out["model"], errors
+    u_0, e_0, between = (ss.cache.optima(key) if two else (ss.e_ref_user, ss.e_ref, None))
+    noise = "between optima (term-free fits from scratch at other seeds)" if between else None
+    g_dec = dict(ss.confirm(e_0, d_ext, alpha, twins=between, look="extended: from scratch" if two else
+                            "extended: warm"), scale=ss.scale, against=base_0, noise=noise)
+    out["confirmation"] = g_dec
+    if g_dec["passes"] and ss.tools.user_improves(u_0, u_ext):
+        out["confirmed"] = True
+        return
+    tried.append(gci(g_dec) + (" from scratch" + (f" (against {base_0})" if base_0 != "the reference" else "")
+                               if two else ""))
+    ss.log(f"extended {out['effs']}: {tried[-1]} ({ss.scale}, {g_dec.get('combination', 'pooled')}): fails")
+    if not (two and s.rescue and g_dec["gain"] > 0):
+        return
+    pr = ss.second_look(key, dict(acc_init), model, (u_ext, d_ext), alpha)
+    if pr["looked"] and pr["confirmed"]:
+        out.update(confirmed=True, confirmation=by_seeds(pr))
+    elif pr["looked"]:
+        tried.append(f"{gci(by_seeds(pr))} paired over {pr['seeds']} seeds: "
+                     + (", ".join(paired_failures(paired_record(pr), pr["user_gain"])) or "fails"))
+    else:
+        tried.append(f"switched off, the terms cost that fit only {gci(pr['terms_share'])}: within the refit noise "
+                     "floor (not fitted at other seeds)")
 
 
 def describe(ss, accepted: list, conf: dict, cis: dict, acc_init: dict, starts, ro_base) -> tuple[dict, dict]:

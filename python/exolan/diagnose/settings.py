@@ -30,6 +30,10 @@ class Settings:
     n_optima: int = 2           # term-free fits from scratch at other seeds: the noise between optima
     n_paired: int = 4           # the paired second look: fits at this many other seeds too, K = 1 + n_paired
     rescue: bool = True         # second looks from scratch paired over seeds (`secondlook.second_look`)
+    # a friction whose warm refit failed rule 1 or 2 refitted from scratch on the learned path (`single.rescue`):
+    # off by default since physics first sizes absorbed dissipation where the parametric base is adequate; where
+    # it is not, the rescue cost 20 of 27 min on a 4-user world and found nothing (docs/DIAGNOSIS.md, "Time")
+    rescue_frictions: bool = False
     average: bool = True        # refits end on their Polyak-averaged weights (fit.train): 4x less refit noise
     w_acc: float = 0.1          # weight of the acceleration error H⁻¹(τ − τ̂) in every fit (fit.train)
     horizon: int = 20

@@ -21,7 +21,8 @@ def looks(ss, effect: str) -> int:
     """How many looks a candidate's single-term decision may take: two where a friction's warm refit may be
     followed by the second look from scratch (`rescue`), else one. Each gets an even share of its level."""
     c = LIBRARY[effect]
-    return 2 if (ss.s.rescue and ss.from_scratch and c.kind == "finding" and not c.needs_exo) else 1
+    return 2 if (ss.s.rescue and ss.s.rescue_frictions and ss.from_scratch and c.kind == "finding"
+                 and not c.needs_exo) else 1
 
 
 def fit_candidates(ss) -> list:
