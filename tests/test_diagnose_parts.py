@@ -1460,8 +1460,9 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
     """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
     term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
     and compared there; the sizes start equal. The form taken is the extended model's fit (no third fit from
-    scratch), its estimates held in the model handed over, and the report says how the forms were compared. Rules forced open: the sizes win; then the switch wins
-    where the sizes' fit from scratch does not beat it, and where it does but fails rule 5 against it."""
+    scratch), its estimates held in the model handed over, and the report says how the forms were compared.
+    Rules forced open: the sizes win; then the switch wins where the sizes' fit from scratch does not beat it, and
+    where it does but fails rule 5 against it."""
     from exolan.diagnose import diagnose
     from exolan.diagnose.synthetic import linear_drive
 

@@ -58,12 +58,13 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
     alpha = ss.budget.confirmation((3 if s.rescue else 2) if two else 1)
     u_ext, d_ext = ss.errors(model)
     base_0 = "a base fitted from scratch with the same recipe" if two and ss.cache.recipe(effs) else "the reference"
+    against = f" (against {base_0})" if base_0 != "the reference" else ""
     by_seeds = lambda pr: dict({k: v for k, v in pr.items() if k not in ("twins", "d", "models", "looked")},  # noqa: E731
                                scale=ss.scale, against=base_0,
                                noise=f"the spread of the paired gains over {pr['seeds']} seeds")
     out = dict(confirmed=False, model=model, u_ext=u_ext, effs=effs,
-               how=("fitted from scratch with the terms" + (f" (against {base_0})" if base_0 != "the reference" else "")
-                    if two else "the given model refitted with the terms (warm start)"))
+               how=("fitted from scratch with the terms" + against if two else
+                    "the given model refitted with the terms (warm start)"))
     pr = ss.cache.paired.get(key) if two else None
     tried = []
     if pr is not None:      # the more powerful look at the same fit, made already (the rescue)
@@ -82,7 +83,7 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
                        how="the reference's refit with the terms held at the estimates of their fit from scratch")
         tried.append(f"{gci(g_h)} as the reference's refit with the terms held there (beyond the refit noise required)")
     if not out["confirmed"] and pr is None:
-        _from_scratch_look(ss, out, key, alpha, (u_ext, d_ext), base_0, by_seeds, tried, acc_init)
+        _from_scratch_look(ss, out, key, alpha, (u_ext, d_ext), (base_0, against), by_seeds, tried, acc_init)
     if not out["confirmed"]:
         for e in accepted:
             e.update(status="ambiguous", reason=(
@@ -93,12 +94,12 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
     return out
 
 
-def _from_scratch_look(ss, out: dict, key: tuple, alpha: float, errors: tuple, base_0: str, by_seeds,
+def _from_scratch_look(ss, out: dict, key: tuple, alpha: float, errors: tuple, judged_against: tuple, by_seeds,
                        tried: list, acc_init: dict) -> None:
     """`confirm_model`'s look at the fit itself: from scratch against a base fitted the same way beyond the noise
     between optima (a given model: the warm refit against the reference), then, where it gained but did not pass,
     its second look paired over seeds (`Settings.rescue`)."""
-    s, two, model, (u_ext, d_ext) = ss.s, ss.from_scratch, out["model"], errors
+    s, two, model, (u_ext, d_ext), (base_0, against) = ss.s, ss.from_scratch, out["model"], errors, judged_against
     u_0, e_0, between = (ss.cache.optima(key) if two else (ss.e_ref_user, ss.e_ref, None))
     noise = "between optima (term-free fits from scratch at other seeds)" if between else None
     g_dec = dict(ss.confirm(e_0, d_ext, alpha, twins=between, look="extended: from scratch" if two else
@@ -107,8 +108,7 @@ def _from_scratch_look(ss, out: dict, key: tuple, alpha: float, errors: tuple, b
     if g_dec["passes"] and ss.tools.user_improves(u_0, u_ext):
         out["confirmed"] = True
         return
-    tried.append(gci(g_dec) + (" from scratch" + (f" (against {base_0})" if base_0 != "the reference" else "")
-                               if two else ""))
+    tried.append(gci(g_dec) + (" from scratch" + against if two else ""))
     ss.log(f"extended {out['effs']}: {tried[-1]} ({ss.scale}, {g_dec.get('combination', 'pooled')}): fails")
     if not (two and s.rescue and g_dec["gain"] > 0):
         return
