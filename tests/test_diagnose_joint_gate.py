@@ -120,3 +120,39 @@ def test_where_every_joint_fails_its_second_gate_physics_first_reports_nothing(a
     ph = rep["physics"]
     assert ph["paths"] == dict(shoulder="learned", elbow="learned")
     assert ph["tests"] == [] and ph["accepted"] == []
+
+
+def test_a_term_the_learned_base_loses_by_holding_is_ambiguous_and_one_it_does_not_lose_by_is_kept():
+    """Rule 6: a physics-first term held at its size in the learned base must not make that base worse on held-out
+    data (the gain's CI wholly below 0); a base that absorbs a real effect gains nothing, which is no evidence
+    against it (a CI reaching 0 keeps the term)."""
+    from exolan.diagnose.physics import PhysicsResult, TermEstimate, verdicts
+
+    def verdict(ci):
+        res = PhysicsResult(alpha=0.05, family=4)
+        key = ("torque_gain", 1)
+        res.status[key] = ("accepted", "p 1e-20 ≤ Holm's threshold 0.005")
+        res.estimates[key] = TermEstimate("torque_gain", "knee", 5.3, [2.8, 56.0], 0.81, 0.09, 1e-20)
+        res.learned_check[key] = dict(gain=sum(ci) / 2, ci=ci)
+        return verdicts(res)[key]
+
+    lost = verdict([-2e-4, -1e-5])
+    assert lost["status"] == "ambiguous" and "worse on held-out data" in lost["reason"]
+    assert lost["reason"].startswith("p 1e-20")                 # the selection's evidence stays in the reason
+    for ci in ([-2e-4, 1e-5], [1e-5, 2e-4]):
+        assert verdict(ci)["status"] == "accepted"
+
+
+def test_physics_first_terms_are_held_in_the_learned_base_and_a_single_ones_model_is_the_extended_model(arm, tmp_path):
+    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+                   rescue=False, n_twins=1, verbose=False,
+                   tools=Tools(adequacy=_gate(dict(shoulder=True, elbow=True), [])))
+    ph = rep["physics"]
+    assert ph["accepted"], "the arm's elbow damping (2.0) is found by physics first"
+    assert set(ph["learned_check"]) == set(ph["accepted"])
+    md = (tmp_path / "diagnosis.md").read_text()
+    assert "held at this size in the learned base, held-out gain" in md
+    assert [(f["effect"], f["joint"]) for f in rep["findings"]] == [("viscous_damping", "elbow")]
+    # the damping held at its size gains in the learned base; that model is handed over, not fitted again
+    v = ph["learned_check"]["viscous_damping:elbow"]
+    assert v["ci"][0] > 0 and rep["extended"]["heldout_gain"] == pytest.approx(v["gain"], rel=1e-12)

@@ -24,6 +24,12 @@ Rule, in plain words (the report states it):
    the two intervals do not overlap, the finding reports both and its interval spans both: the data size the
    effect only up to that disagreement. Where the learned base's residual shows no effect at all, the term is
    `ambiguous` (the parametric base may be what misses it).
+6. The learned base's check (`physics_path.learned_check`): the learned base with the term held at its parametric
+   size, its networks refitted as the reference's were (the two differ by the term alone), must not be worse on
+   held-out data than the reference (the paired gain's 95 % CI not wholly below 0). A base that predicts better
+   can absorb a real effect (then it gains nothing, but loses nothing either); where holding the term costs it
+   accuracy, the term carries what the parametric base's misfit put in it (an exo-driven column copies the joint
+   torque, hence that misfit too), and it is `ambiguous`. A check that can only remove: no level is spent.
 """
 from __future__ import annotations
 
@@ -70,6 +76,7 @@ class PhysicsResult:
     e_held: dict | None = None                            # per joint, per held row of the flat: squared error (mass-norm.)
     held_rows: np.ndarray | None = None
     cross: dict = field(default_factory=dict)             # (effect, j) -> TermEstimate on the learned residual
+    learned_check: dict = field(default_factory=dict)     # (effect, j) -> the learned base's gain with it held (rule 6)
     term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
     term_rows: dict = field(default_factory=dict)         # (effect, j) -> that gain per held row of the flat
     forms: dict = field(default_factory=dict)             # (effect, j) -> its subject form (`physics_subjects`)
@@ -92,6 +99,7 @@ class PhysicsResult:
             accepted=[f"{e}:{joints[j]}" for e, j in self.accepted],
             estimates={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.estimates.items()},
             cross_check={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.cross.items()},
+            learned_check={f"{e}:{joints[j]}": v for (e, j), v in self.learned_check.items()},
             tests=self.tests, base=self.base, heldout=self.heldout, seconds=self.seconds))
 
 
@@ -328,6 +336,7 @@ def reset(res: PhysicsResult) -> None:
     it no longer decides in Holm's step-down (they would loosen every later threshold)."""
     res.accepted, res.estimates, res.tests, res.status = [], {}, [], {}
     res.base, res.heldout, res.cross, res.term_gain, res.term_rows, res.forms = {}, {}, {}, {}, {}, {}
+    res.learned_check = {}
     res.e_held, res.held_rows = None, None
     res._fits = dict(res._base_fits)
     for prob in getattr(res, "_probs", {}).values():
@@ -447,7 +456,7 @@ def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=N
 
 
 def verdicts(res: PhysicsResult) -> dict:
-    """(effect, j) -> dict(status, reason, estimate, ci, note): rules 2-5 together."""
+    """(effect, j) -> dict(status, reason, estimate, ci, note): rules 2-6 together."""
     out = {}
     for key, (status, reason) in res.status.items():
         v = dict(status=status, reason=reason)
@@ -465,5 +474,11 @@ def verdicts(res: PhysicsResult) -> dict:
                     v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
                                  f"the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]; the "
                                  "interval spans both")
+            lc = res.learned_check.get(key)
+            if lc is not None and v["status"] == "accepted" and lc["ci"][1] < 0:
+                v.update(status="ambiguous", reason=v["reason"] + (
+                    f"; but the learned base with it held at this size is worse on held-out data (gain "
+                    f"{lc['gain']:.3g} [{lc['ci'][0]:.3g}, {lc['ci'][1]:.3g}]): it carries what the parametric "
+                    "base misfits, not an effect both bases show"))
         out[key] = v
     return out

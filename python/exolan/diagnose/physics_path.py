@@ -34,7 +34,9 @@ RULE = ("Physics first: every candidate term was fitted jointly with a parametri
         "Rivals that held-out data cannot separate are ambiguous (a nested pair: the simpler is taken). The same "
         "terms fitted on the learned base's residual cross-check the sizes: where the two intervals do not "
         "overlap the finding reports both and its interval spans both; where that residual shows no such term "
-        "it is ambiguous.")
+        "it is ambiguous. Last, each term is held alone at its size in the learned base, whose networks are "
+        "refitted as the reference's: where that base is then worse on held-out data than the reference, the term "
+        "carries what the parametric base misfits and is ambiguous.")
 
 
 def adequacy(e_param: dict[int, np.ndarray], ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
@@ -185,6 +187,32 @@ def extended_model(base, flat, s, accepted: list, phys: physics.PhysicsResult, r
     return ext
 
 
+def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, log) -> dict:
+    """Rule 6 (`physics` docstring): every physics-first term, held alone at its physical size (its subject form's)
+    in the learned base whose networks are refitted as the reference's, against the reference on held-out data
+    (the user's unweighted error): `phys.learned_check`. Returns (effect, j) -> that model (the extended model,
+    where it is the only term accepted)."""
+    from .refits import refit_terms_frozen
+    from .rules import paired_gain
+
+    held = flat.index("held")
+    e_ref = sq_errors(ref, flat, held).sum(1)
+    models = {}
+    ver = physics.verdicts(phys)
+    for key in [k for k in phys.accepted if k[1] in joint_ids and ver[k]["status"] == "accepted"]:
+        eff, j = key
+        log(f"the learned base's check: {eff}:{flat.joints[j]} held at its physical size, the networks refitted")
+        m = extended_model(base, flat, s, [key], phys, refit_terms_frozen)
+        g = paired_gain(e_ref, sq_errors(m, flat, held).sum(1), s)
+        phys.learned_check[key] = jsonable(dict(
+            gain=g["gain"], ci=g["ci"], relative=g["rel"],
+            model="the reference's refit with this term alone held at the parametric size"))
+        models[key] = m
+        log(f"the learned base's check: {eff}:{flat.joints[j]} held-out gain {g['gain']:.3g} "
+            f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] ({100 * g['rel']:+.1f} %)")
+    return models
+
+
 def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
     """The learned path: every candidate entry carries the parametric estimate; a disagreement beyond both
     intervals is said in a note (not resolved by picking one)."""
@@ -214,6 +242,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
            learned: dict | None = None) -> dict:
     """The physics-first diagnosis' result dict (`procedure.run`'s return shape) for the joints `joint_ids`;
     `learned`: the learned path's result for the other joints (None: physics first decides every joint)."""
+    held_models = learned_check(phys, base, ref, flat, s, joint_ids, log)
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]
     if learned is not None and (not accepted or any(e["status"] == "accepted" for e in learned["results"])):
@@ -231,7 +260,8 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     structure = R.residual_structure(ref, flat, held)
     ext_model, ro_ext, extended = None, None, None
     if accepted:
-        ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log)
+        ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log,
+                                                ready=held_models.get(accepted[0]) if len(accepted) == 1 else None)
         if extended["heldout_gain_ci"][1] <= 0:
             for e in results:
                 if e["status"] == "accepted":
@@ -272,15 +302,16 @@ def beside(learned: dict, results: list, phys: physics.PhysicsResult, flat, adeq
     return learned
 
 
-def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, log):
-    """The extended model with the accepted terms at their physical sizes, its held-out and rollout gains."""
+def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, log, ready=None):
+    """The extended model with the accepted terms at their physical sizes, its held-out and rollout gains;
+    `ready`: that model already fitted (rule 6's, where one term is accepted)."""
     from .limits import torque_unit
     from .refits import metrics as _metrics, refit_terms_frozen as _refit_terms_frozen
     from .rules import paired_gain as _gain
 
     log(f"extended model: the learned base with {', '.join(f'{a}:{flat.joints[j]}' for a, j in accepted)} held at "
         f"their physical sizes, its networks refitted")
-    ext_model = extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
+    ext_model = ready if ready is not None else extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
     e_ref, e_ext = sq_errors(ref, flat, held), sq_errors(ext_model, flat, held)
     g = _gain(e_ref.sum(1), e_ext.sum(1), s)
     extended, ro_ext = _metrics(ext_model, flat, s, starts)

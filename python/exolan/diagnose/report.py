@@ -297,7 +297,7 @@ def _limit_lines(limits: dict) -> list[str]:
 
 def _physics_lines(ph: dict | None, unit: str) -> list[str]:
     """The physics-first identification (`physics`): its base's fit, every accepted term beside the learned base's
-    cross-check, the Holm steps, and which path decided."""
+    cross-check and check (rule 6), the Holm steps, and which path decided."""
     if not ph:
         return []
     ad = ph.get("adequacy") or {}
@@ -314,11 +314,13 @@ def _physics_lines(ph: dict | None, unit: str) -> list[str]:
     for j, b in (ph.get("base") or {}).items():
         if "columns" not in b:
             L.append(f"- {j} base: " + ", ".join(f"{k} {_fmt(v['value'])} ± {_fmt(v['se'], 2)}" for k, v in b.items()))
-    cross = ph.get("cross_check") or {}
+    cross, held = ph.get("cross_check") or {}, ph.get("learned_check") or {}
     for k, v in (ph.get("estimates") or {}).items():
-        c = cross.get(k)
+        c, h = cross.get(k), held.get(k)
         L.append(f"- {k}: {_fmt(v['estimate'])} CI {_fmt(v['ci'], 3)} (p {_fmt(v['p'], 2)})"
-                 + (f"; on the learned base's residual {_fmt(c['estimate'])} CI {_fmt(c['ci'], 3)}" if c else ""))
+                 + (f"; on the learned base's residual {_fmt(c['estimate'])} CI {_fmt(c['ci'], 3)}" if c else "")
+                 + (f"; held at this size in the learned base, held-out gain {_fmt(h['gain'], 3)} ({unit})² "
+                    f"CI {_fmt(h['ci'], 3)}" if h else ""))
     if ph.get("tests"):
         L.append("")
         L.append("| step | candidate | p | Holm threshold | estimate | held-out gain [CI] |")
