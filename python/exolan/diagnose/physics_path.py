@@ -195,22 +195,25 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     from .refits import refit_terms_frozen
     from .rules import paired_gain
 
+    from .workers import Workers
+
     held = flat.index("held")
     e_ref = sq_errors(ref, flat, held).sum(1)
-    models = {}
     ver = physics.verdicts(phys)
-    for key in [k for k in phys.accepted if k[1] in joint_ids and ver[k]["status"] == "accepted"]:
-        eff, j = key
-        log(f"the learned base's check: {eff}:{flat.joints[j]} held at its physical size, the networks refitted")
-        m = extended_model(base, flat, s, [key], phys, refit_terms_frozen)
+    keys = [k for k in phys.accepted if k[1] in joint_ids and ver[k]["status"] == "accepted"]
+    if keys:
+        log(f"the learned base's check: {', '.join(f'{e}:{flat.joints[j]}' for e, j in keys)}, each held alone at "
+            "its physical size, the networks refitted")
+    fitted = Workers(s.workers).map([lambda k=k: extended_model(base, flat, s, [k], phys, refit_terms_frozen)
+                                     for k in keys])
+    for (eff, j), m in zip(keys, fitted):
         g = paired_gain(e_ref, sq_errors(m, flat, held).sum(1), s)
-        phys.learned_check[key] = jsonable(dict(
+        phys.learned_check[(eff, j)] = jsonable(dict(
             gain=g["gain"], ci=g["ci"], relative=g["rel"],
             model="the reference's refit with this term alone held at the parametric size"))
-        models[key] = m
         log(f"the learned base's check: {eff}:{flat.joints[j]} held-out gain {g['gain']:.3g} "
             f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] ({100 * g['rel']:+.1f} %)")
-    return models
+    return dict(zip(keys, fitted))
 
 
 def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
