@@ -194,7 +194,6 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     where it is the only term accepted)."""
     from .refits import refit_terms_frozen
     from .rules import paired_gain
-
     from .workers import Workers
 
     held = flat.index("held")
