@@ -9,10 +9,9 @@ from exolan.diagnose import physics_path, stats
 from exolan.diagnose.fit import sq_errors
 from exolan.diagnose.refits import refit_terms_frozen
 root, effect, seed = sys.argv[1], sys.argv[2], int(sys.argv[3])
-if effect != "none" and not __import__("os").path.exists(root):
-    simulate(root, users=2, tasks="walk,squat,calisthenics,turn", seconds=16, seed=seed, effects=[effect], progress=False)
-elif effect == "none" and not __import__("os").path.exists(root):
-    simulate(root, users=2, tasks="walk,squat,calisthenics,turn", seconds=16, seed=seed, effects=[], progress=False)
+if not __import__("os").path.exists(root):      # an existing world is replayed as it is (EFFECT, SEED unused)
+    simulate(root, users=2, tasks="walk,squat,calisthenics,turn", seconds=16, seed=seed,
+             effects=[] if effect == "none" else [effect], progress=False)
 torch.set_num_threads(1)
 cfg = dict(QUICK); cfg.update(steps_base=1500, steps_refit=400, hidden=64, verbose=False)
 s = Settings(**cfg)
