@@ -242,16 +242,16 @@ def _delay_grid(sig, j, ctx):
 
 def _strap_col(sig, j, nu, ctx):
     """Linearised strap: the physics at q − c τ_e: −c (∂τ̂/∂q τ_e + ∂τ̂/∂q̇ τ̇_e + ∂τ̂/∂q̈ τ̈_e), ∂τ̂ from the
-    base-only fit (`ctx['base_theta']`); linear in the compliance c = 1/k."""
-    th = ctx["base_theta"][j]
-    h = 1e-4
-    cols = []
-    for name, src in (("q", sig.tau_e), ("qd", sig.tau_e_d), ("qdd", sig.tau_e_dd)):
-        kin = {"q": sig.q.copy(), "qd": sig.qd.copy(), "qdd": sig.qdd.copy()}
-        kin[name][:, j] += h
-        Xp = base_columns(kin["q"], kin["qd"], kin["qdd"], sig)[0]
-        cols.append((Xp @ th - ctx["base_raw"] @ th) / h * src[:, j])
-    return -np.sum(cols, 0)
+    base's coefficients `ctx['base_theta']` (the fit with the strap, `physics._strap_point`); linear in c = 1/k."""
+    G = ctx.setdefault("strap_G", {})
+    if j not in G:      # the base columns' derivative along the deflection: linear in θ, made once per joint
+        h, Gj = 1e-4, 0.0
+        for name, src in (("q", sig.tau_e), ("qd", sig.tau_e_d), ("qdd", sig.tau_e_dd)):
+            kin = {"q": sig.q.copy(), "qd": sig.qd.copy(), "qdd": sig.qdd.copy()}
+            kin[name][:, j] += h
+            Gj = Gj + (base_columns(kin["q"], kin["qd"], kin["qdd"], sig)[0] - ctx["base_raw"]) / h * src[:, j:j + 1]
+        G[j] = Gj
+    return -(G[j] @ ctx["base_theta"][j])
 
 
 TERMS: dict[str, Term] = {t.effect: t for t in [
