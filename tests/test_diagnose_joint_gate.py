@@ -156,3 +156,41 @@ def test_physics_first_terms_are_held_in_the_learned_base_and_a_single_ones_mode
     # the damping held at its size gains in the learned base; that model is handed over, not fitted again
     v = ph["learned_check"]["viscous_damping:elbow"]
     assert v["ci"][0] > 0 and rep["extended"]["heldout_gain"] == pytest.approx(v["gain"], rel=1e-12)
+
+
+def test_with_several_terms_each_is_checked_by_its_own_share_beside_the_others():
+    """Rule 6 with two accepted terms: each is judged by the model holding both against the same without it. A
+    term that helps alone only by mimicking the other (an exo torque gain beside a strap: alone it takes part of
+    the strap's work) but costs accuracy beside it is ambiguous; the term that carries the effect is kept. Held
+    alone, both would have passed."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from exolan.diagnose import physics_path
+    from exolan.diagnose.physics import PhysicsResult, TermEstimate, verdicts
+    from exolan.diagnose.settings import Settings
+
+    strap, gain = ("strap_compliance", 1), ("torque_gain", 1)
+    res = PhysicsResult(alpha=0.05, family=4)
+    res.accepted = [strap, gain]
+    for key, est in ((strap, 115.0), (gain, 2.9)):
+        res.status[key] = ("accepted", "p 1e-20 ≤ Holm's threshold 0.005")
+        res.estimates[key] = TermEstimate(key[0], "knee", est, [0.9 * est, 1.1 * est], 1.0, 0.01, 1e-20)
+    rng = np.random.default_rng(0)
+    N = 4000
+    e_ref = 1.0 + 0.1 * rng.standard_normal(N)
+    cost = {frozenset(): 0.0, frozenset([strap]): -0.10, frozenset([gain]): -0.05, frozenset([strap, gain]): -0.08}
+    noise = {k: 0.002 * rng.standard_normal(N) for k in cost}
+    fitted = []
+    flat = SimpleNamespace(joints=("hip", "knee"), index=lambda which: np.arange(N))
+    models = physics_path.learned_check(
+        res, None, "ref", flat, Settings(n_boot=300, workers=1), [1], lambda m: None,
+        fit=lambda terms: fitted.append(frozenset(terms)) or frozenset(terms),
+        errors=lambda m: e_ref + (0.0 if m == "ref" else cost[m] + noise[m]))
+    assert sorted(map(len, fitted)) == [1, 1, 2] and set(models) == set(fitted)
+    assert res.learned_check[strap]["ci"][0] > 0             # 0.03 beside the gain
+    assert res.learned_check[gain]["ci"][1] < 0              # −0.02 beside the strap (alone it would gain 0.05)
+    v = verdicts(res)
+    assert v[strap]["status"] == "accepted" and v[gain]["status"] == "ambiguous"
+    assert "without it" in v[gain]["reason"]

@@ -25,8 +25,9 @@ Rule, in plain words (the report states it):
    effect only up to that disagreement. Where the learned base's residual shows no effect at all, the term is
    `ambiguous` (the parametric base may be what misses it).
 6. The learned base's check (`physics_path.learned_check`): the learned base with the term held at its parametric
-   size, its networks refitted as the reference's were (the two differ by the term alone), must not be worse on
-   held-out data than the reference (the paired gain's 95 % CI not wholly below 0). A base that predicts better
+   size, its networks refitted as the reference's were, must not be worse on held-out data than without it (the
+   paired gain's 95 % CI not wholly below 0): one accepted term against the reference, several by each one's own
+   share (all held against all but this one: a term that mimics another accepted one passes alone by proxy). A base that predicts better
    can absorb a real effect (then it gains nothing, but loses nothing either); where holding the term costs it
    accuracy, the term carries what the parametric base's misfit put in it (an exo-driven column copies the joint
    torque, hence that misfit too), and it is `ambiguous`. A check that can only remove: no level is spent.
@@ -499,7 +500,7 @@ def verdicts(res: PhysicsResult) -> dict:
             lc = res.learned_check.get(key)
             if lc is not None and v["status"] == "accepted" and lc["ci"][1] < 0:
                 v.update(status="ambiguous", reason=v["reason"] + (
-                    f"; but the learned base with it held at this size is worse on held-out data (gain "
+                    f"; but the learned base with it held at this size is worse on held-out data than without it (gain "
                     f"{lc['gain']:.3g} [{lc['ci'][0]:.3g}, {lc['ci'][1]:.3g}]): it carries what the parametric "
                     "base misfits, not an effect both bases show"))
         out[key] = v

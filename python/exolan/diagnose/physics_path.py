@@ -34,9 +34,9 @@ RULE = ("Physics first: every candidate term was fitted jointly with a parametri
         "Rivals that held-out data cannot separate are ambiguous (a nested pair: the simpler is taken). The same "
         "terms fitted on the learned base's residual cross-check the sizes: where the two intervals do not "
         "overlap the finding reports both and its interval spans both; where that residual shows no such term "
-        "it is ambiguous. Last, each term is held alone at its size in the learned base, whose networks are "
-        "refitted as the reference's: where that base is then worse on held-out data than the reference, the term "
-        "carries what the parametric base misfits and is ambiguous.")
+        "it is ambiguous. Last, the terms are held at their sizes in the learned base, whose networks are "
+        "refitted as the reference's: where that base is worse on held-out data with a term than without it (beside "
+        "the other accepted terms), the term carries what the parametric base misfits and is ambiguous.")
 
 
 def adequacy(e_param: dict[int, np.ndarray], ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
@@ -187,32 +187,40 @@ def extended_model(base, flat, s, accepted: list, phys: physics.PhysicsResult, r
     return ext
 
 
-def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, log) -> dict:
-    """Rule 6 (`physics` docstring): every physics-first term, held alone at its physical size (its subject form's)
-    in the learned base whose networks are refitted as the reference's, against the reference on held-out data
-    (the user's unweighted error): `phys.learned_check`. Returns (effect, j) -> that model (the extended model,
-    where it is the only term accepted)."""
+def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, log, fit=None, errors=None) -> dict:
+    """Rule 6 (`physics` docstring): every physics-first term held at its physical size (its subject form's) in the
+    learned base, whose networks are refitted as the reference's, and judged on held-out data (the user's
+    unweighted error) by its own share: one term against the reference; several, the model with all of them
+    against the same without this one (a term that mimics another accepted term would pass alone by proxy).
+    Fills `phys.learned_check`; returns frozenset(terms) -> each model fitted (one is the extended model).
+    `fit` (terms -> model) and `errors` (model -> held-out squared error per row): tests pass stubs."""
     from .refits import refit_terms_frozen
     from .rules import paired_gain
     from .workers import Workers
 
     held = flat.index("held")
-    e_ref = sq_errors(ref, flat, held).sum(1)
+    fit = fit or (lambda terms: extended_model(base, flat, s, terms, phys, refit_terms_frozen))
+    errors = errors or (lambda m: sq_errors(m, flat, held).sum(1))
     ver = physics.verdicts(phys)
     keys = [k for k in phys.accepted if k[1] in joint_ids and ver[k]["status"] == "accepted"]
-    if keys:
-        log(f"the learned base's check: {', '.join(f'{e}:{flat.joints[j]}' for e, j in keys)}, each held alone at "
-            "its physical size, the networks refitted")
-    fitted = Workers(s.workers).map([lambda k=k: extended_model(base, flat, s, [k], phys, refit_terms_frozen)
-                                     for k in keys])
-    for (eff, j), m in zip(keys, fitted):
-        g = paired_gain(e_ref, sq_errors(m, flat, held).sum(1), s)
+    if not keys:
+        return {}
+    combos = [keys] + ([[x for x in keys if x != k] for k in keys] if len(keys) > 1 else [])
+    log(f"the learned base's check: {', '.join(f'{e}:{flat.joints[j]}' for e, j in keys)} held at their physical "
+        f"sizes, the networks refitted ({len(combos)} refits)")
+    models = Workers(s.workers).map([lambda c=c: fit(c) for c in combos])
+    errs = [errors(m) for m in models]
+    e_ref = errors(ref)
+    for i, (eff, j) in enumerate(keys):
+        g = paired_gain(e_ref if len(keys) == 1 else errs[1 + i], errs[0], s)
         phys.learned_check[(eff, j)] = jsonable(dict(
             gain=g["gain"], ci=g["ci"], relative=g["rel"],
-            model="the reference's refit with this term alone held at the parametric size"))
+            model="the reference's refit with this term alone held at the parametric size" if len(keys) == 1 else
+                  "the reference's refit with every accepted term held at its parametric size, against the same "
+                  "without this term"))
         log(f"the learned base's check: {eff}:{flat.joints[j]} held-out gain {g['gain']:.3g} "
             f"[{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] ({100 * g['rel']:+.1f} %)")
-    return dict(zip(keys, fitted))
+    return {frozenset(c): m for c, m in zip(combos, models)}
 
 
 def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
@@ -263,7 +271,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     ext_model, ro_ext, extended = None, None, None
     if accepted:
         ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log,
-                                                ready=held_models.get(accepted[0]) if len(accepted) == 1 else None)
+                                                ready=held_models.get(frozenset(accepted)))
         if extended["heldout_gain_ci"][1] <= 0:
             for e in results:
                 if e["status"] == "accepted":
@@ -306,7 +314,7 @@ def beside(learned: dict, results: list, phys: physics.PhysicsResult, flat, adeq
 
 def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, log, ready=None):
     """The extended model with the accepted terms at their physical sizes, its held-out and rollout gains;
-    `ready`: that model already fitted (rule 6's, where one term is accepted)."""
+    `ready`: that model already fitted (one of rule 6's)."""
     from .limits import torque_unit
     from .refits import metrics as _metrics, refit_terms_frozen as _refit_terms_frozen
     from .rules import paired_gain as _gain
