@@ -194,3 +194,23 @@ def test_with_several_terms_each_is_checked_by_its_own_share_beside_the_others()
     v = verdicts(res)
     assert v[strap]["status"] == "accepted" and v[gain]["status"] == "ambiguous"
     assert "without it" in v[gain]["reason"]
+
+
+def test_a_term_the_learned_residual_shows_with_the_other_sign_is_ambiguous():
+    """Rule 5: a knee torque gain of 2.9 on the parametric base that the learned base's residual sizes at 0.95
+    (significant, but the other side of 1, measured beside a soft strap): the span of the two holds no effect, so
+    the two bases do not show one; the same direction on both (1.9 and 1.3) keeps it, its interval spanning both."""
+    from exolan.diagnose.physics import PhysicsResult, TermEstimate, verdicts
+
+    def verdict(cross):
+        res = PhysicsResult(alpha=0.05, family=4)
+        key = ("torque_gain", 1)
+        res.status[key] = ("accepted", "p 1e-20 ≤ Holm's threshold 0.005")
+        res.estimates[key] = TermEstimate("torque_gain", "knee", 2.9, [2.1, 4.7], 0.65, 0.07, 1e-20)
+        res.cross[key] = cross
+        return verdicts(res)[key]
+
+    other = verdict(TermEstimate("torque_gain", "knee", 0.947, [0.916, 0.981], -0.056, 0.018, 0.002))
+    assert other["status"] == "ambiguous" and "other way" in other["reason"]
+    same = verdict(TermEstimate("torque_gain", "knee", 1.3, [1.2, 1.4], 0.23, 0.03, 1e-9))
+    assert same["status"] == "accepted" and same["ci"] == [1.2, 4.7]

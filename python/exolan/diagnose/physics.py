@@ -22,8 +22,9 @@ Rule, in plain words (the report states it):
    0) is `ambiguous` with it — unless one reduces to the other (Stribeck to Coulomb): the simpler is taken.
 5. Cross-check: the same terms fitted on the learned base's residual (a constant and the terms only). Where
    the two intervals do not overlap, the finding reports both and its interval spans both: the data size the
-   effect only up to that disagreement. Where the learned base's residual shows no effect at all, the term is
-   `ambiguous` (the parametric base may be what misses it).
+   effect only up to that disagreement. Where the learned base's residual shows no effect at all, or one of the
+   other sign (a gain above 1 there below 1: the span holds no effect), the term is `ambiguous` (the parametric
+   base may be what misses it).
 6. The learned base's check (`physics_path.learned_check`): the learned base with the term held at its parametric
    size, its networks refitted as the reference's were, must not be worse on held-out data than without it (the
    paired gain's 95 % CI not wholly below 0): one accepted term against the reference, several by each one's own
@@ -492,6 +493,10 @@ def verdicts(res: PhysicsResult) -> dict:
                     v.update(status="ambiguous", reason=reason + f"; but the learned base's residual shows no such term "
                              f"({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], p {c.p:.2g}): the parametric base may "
                              "be what misses it")
+                elif c.theta * m.theta < 0:     # a two-sided term seen both ways: the span holds no effect
+                    v.update(status="ambiguous", reason=reason + f"; but on the learned base's residual it points the "
+                             f"other way ({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}] against {m.estimate:.4g}): "
+                             "the two bases do not agree that there is such an effect")
                 elif c.ci[1] < m.ci[0] or c.ci[0] > m.ci[1]:
                     v["ci"] = [min(m.ci[0], c.ci[0]), max(m.ci[1], c.ci[1])]
                     v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
