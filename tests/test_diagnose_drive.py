@@ -182,6 +182,21 @@ def test_physics_first_sizes_a_soft_strap_where_the_exo_torque_follows_the_motio
         assert abs(res.estimates[("strap_compliance", 0)].estimate / k - 1) <= 0.05, msg
 
 
+def test_where_p_underflows_to_0_the_larger_statistic_is_selected_first():
+    """Two candidates past z ≈ 38 both have p = 0 in double precision: forward selection must then take the one
+    with the larger statistic, not the one listed first (a strap world's knee took a 90 ms delay at z 39 before
+    its strap at z 45 and lost the strap). A stiff strap (z in the hundreds) and a torque gain that copies part of
+    it (z about 90), the gain listed first: the strap is step 1 and alone accepted."""
+    rng = np.random.default_rng(4)           # the draw whose gain also underflows (fixed: the point is the tie)
+    k = float(rng.uniform(60, 150))
+    flat = prepare([_strap_pendulum(rng, k)])
+    res = physics.identify(flat, ("torque_gain", "strap_compliance"), [0])
+    assert [t["p"] for t in res.tests[:1]] == [0.0] and res.tests[0]["effect"] == "strap_compliance", res.tests
+    gain = physics.single_term(res, "torque_gain", 0, "knee")
+    assert gain.p == 0.0, "both underflow: the test is about the tie"
+    assert [e for e, _ in res.accepted] == ["strap_compliance"], res.summary(("knee",))
+
+
 def test_a_physics_first_finding_reports_which_tasks_and_subjects_carry_it():
     """Two recordings of one drive under two task names and two subjects: the found friction's entry shows its
     own held-out gain per task and per subject (the evidence a learned-path finding shows too)."""

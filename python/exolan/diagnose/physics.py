@@ -153,6 +153,13 @@ def _p(prob: ident.JointProblem, f: ident.Fit, eff: str) -> float:
     return p
 
 
+def _z(f: ident.Fit, eff: str) -> float:
+    """The test's statistic θ/SE (|θ|/SE where two-sided; the largest subject's where split by subject)."""
+    th, se = f.split[eff] if eff in f.split else (np.array([f.est[eff]]), np.array([f.se[eff]]))
+    z = np.asarray(th) / np.where(np.asarray(se) > 0, se, np.inf)
+    return float(np.max(np.abs(z) if ident.TERMS[eff].sided == "two-sided" else z))
+
+
 def _edge_text(prob: ident.JointProblem, f: ident.Fit, eff: str) -> str | None:
     """Why a nonlinear parameter at an edge of its grid is not identified, or None."""
     g = ident.TERMS[eff].grid
@@ -270,7 +277,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
         for e, j in pool:
             log(f"physics step {r + 1}: testing {e} on {flat.joints[j]}")
             tried.append(_test(probs[j], accepted[j], e, masks) + (e, j))
-        tried.sort(key=lambda x: x[0])
+        tried.sort(key=lambda x: (x[0], -_z(x[1], x[3])))      # p underflows to 0 past z ≈ 38: then the larger z
         p, f, split, e, j = tried[0]
         tried = [(pe, ee, jj, ff) for pe, ff, _, ee, jj in tried]
         thr = alpha / (len(cands) - r)
