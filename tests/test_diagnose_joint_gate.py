@@ -126,7 +126,8 @@ def test_a_term_the_learned_base_loses_by_holding_is_ambiguous_and_one_it_does_n
     """Rule 6: a physics-first term held at its size in the learned base must not make that base worse on held-out
     data (the gain's CI wholly below 0); a base that absorbs a real effect gains nothing, which is no evidence
     against it (a CI reaching 0 keeps the term)."""
-    from exolan.diagnose.physics import PhysicsResult, TermEstimate, verdicts
+    from exolan.diagnose.physics import PhysicsResult, TermEstimate
+    from exolan.diagnose.physics_checks import verdicts
 
     def verdict(ci):
         res = PhysicsResult(alpha=0.05, family=4)
@@ -168,7 +169,8 @@ def test_with_several_terms_each_is_checked_by_its_own_share_beside_the_others()
     import numpy as np
 
     from exolan.diagnose import physics_path
-    from exolan.diagnose.physics import PhysicsResult, TermEstimate, verdicts
+    from exolan.diagnose.physics import PhysicsResult, TermEstimate
+    from exolan.diagnose.physics_checks import verdicts
     from exolan.diagnose.settings import Settings
 
     strap, gain = ("strap_compliance", 1), ("torque_gain", 1)
@@ -200,7 +202,8 @@ def test_a_term_the_learned_residual_shows_with_the_other_sign_is_ambiguous():
     """Rule 5: a knee torque gain of 2.9 on the parametric base that the learned base's residual sizes at 0.95
     (significant, but the other side of 1, measured beside a soft strap): the span of the two holds no effect, so
     the two bases do not show one; the same direction on both (1.9 and 1.3) keeps it, its interval spanning both."""
-    from exolan.diagnose.physics import PhysicsResult, TermEstimate, verdicts
+    from exolan.diagnose.physics import PhysicsResult, TermEstimate
+    from exolan.diagnose.physics_checks import verdicts
 
     def verdict(cross):
         res = PhysicsResult(alpha=0.05, family=4)

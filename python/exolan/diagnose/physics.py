@@ -105,7 +105,7 @@ class PhysicsResult:
             tests=self.tests, base=self.base, heldout=self.heldout, seconds=self.seconds))
 
 
-def _estimate(prob: ident.JointProblem, f: ident.Fit, eff: str, joint: str) -> TermEstimate:
+def term_estimate(prob: ident.JointProblem, f: ident.Fit, eff: str, joint: str) -> TermEstimate:
     t = ident.TERMS[eff]
     th, se = f.est[eff], f.se[eff]
     lo, hi = th - Z95 * se, th + Z95 * se
@@ -251,7 +251,7 @@ def single_term(res: PhysicsResult, effect: str, j: int, joint: str) -> TermEsti
     if effect not in ident.TERMS or (effect, j) not in res._cands:
         return None
     prob = res._probs[j]
-    return _estimate(prob, prob.fit([effect]), effect, joint)
+    return term_estimate(prob, prob.fit([effect]), effect, joint)
 
 
 def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
@@ -282,7 +282,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
         tried = [(pe, ee, jj, ff) for pe, ff, _, ee, jj in tried]
         thr = alpha / (len(cands) - r)
         gain = _held_gain(probs[j].held_sq(cur[j]), probs[j].held_sq(f), n_boot)
-        te = _estimate(probs[j], f, e, flat.joints[j])
+        te = term_estimate(probs[j], f, e, flat.joints[j])
         rec = dict(step=r + 1, effect=e, joint=flat.joints[j], p=p, threshold=thr, estimate=te.estimate, ci=te.ci,
                    heldout_gain=gain["gain"], heldout_gain_ci=gain["ci"])
         res.tests.append(rec)
@@ -328,7 +328,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
         f, gains, withouts = _held_out_fit(res, prob, accepted[j], flat.joints[j], j, n_boot)
         cur[j] = f
         for e in accepted[j]:
-            res.estimates[(e, j)] = _estimate(prob, f, e, flat.joints[j])
+            res.estimates[(e, j)] = term_estimate(prob, f, e, flat.joints[j])
             res.accepted.append((e, j))
             res.term_gain[(e, j)] = gains[e]
             res.term_rows[(e, j)] = prob.held_sq(withouts[e], held_idx) - prob.held_sq(f, held_idx)
@@ -379,7 +379,7 @@ def _physical_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
     physical domain (`Candidate.outside_domain`: they absorb something else), refitted until none is."""
     while True:
         f = prob.fit(accepted)
-        bad = [(e, te) for e in accepted for te in [_estimate(prob, f, e, joint)]
+        bad = [(e, te) for e in accepted for te in [term_estimate(prob, f, e, joint)]
                if LIBRARY[e].outside_domain(te.ci)]
         if not bad:
             return f
@@ -459,61 +459,3 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                 res.status[(e, j)] = ("ambiguous", why)
                 res.status[(rv, j)] = ("ambiguous", why)
                 break
-
-
-def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=None) -> None:
-    """Rule 5: the candidate terms fitted on the learned base's residual (training rows, the same low-pass),
-    with a constant only: `res.cross`; a disagreement widens the finding's interval or makes it ambiguous."""
-    probs = res._probs
-    for j in joint_ids:
-        prob = probs[j]
-        terms = [e for e, jj in res.accepted if jj == j]
-        if not terms:
-            continue
-        sig = prob.sig
-        r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
-        sig_r = ident.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
-        sig_r.tau[:, j] = r
-        one = np.ones((len(r), 1))
-        p = ident.JointProblem(sig_r, j, one, ["const"], prob.ctx)
-        p.w = prob.w
-        f = p.fit(terms)
-        for e in terms:
-            res.cross[(e, j)] = _estimate(p, f, e, flat.joints[j])
-            if log:
-                c, m = res.cross[(e, j)], res.estimates[(e, j)]
-                log(f"cross-check {e} on {flat.joints[j]}: parametric {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
-                    f"on the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]")
-
-
-def verdicts(res: PhysicsResult) -> dict:
-    """(effect, j) -> dict(status, reason, estimate, ci, note): rules 2-6 together."""
-    out = {}
-    for key, (status, reason) in res.status.items():
-        v = dict(status=status, reason=reason)
-        if key in res.estimates and status == "accepted":
-            m = res.estimates[key]
-            v.update(estimate=m.estimate, ci=list(m.ci))
-            c = res.cross.get(key)
-            if c is not None:
-                if c.p > res.alpha:
-                    v.update(status="ambiguous", reason=reason + f"; but the learned base's residual shows no such term "
-                             f"({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], p {c.p:.2g}): the parametric base may "
-                             "be what misses it")
-                elif c.theta * m.theta < 0:     # a two-sided term seen both ways: the span holds no effect
-                    v.update(status="ambiguous", reason=reason + f"; but on the learned base's residual it points the "
-                             f"other way ({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}] against {m.estimate:.4g}): "
-                             "the two bases do not agree that there is such an effect")
-                elif c.ci[1] < m.ci[0] or c.ci[0] > m.ci[1]:
-                    v["ci"] = [min(m.ci[0], c.ci[0]), max(m.ci[1], c.ci[1])]
-                    v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
-                                 f"the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]; the "
-                                 "interval spans both")
-            lc = res.learned_check.get(key)
-            if lc is not None and v["status"] == "accepted" and lc["ci"][1] < 0:
-                v.update(status="ambiguous", reason=v["reason"] + (
-                    f"; but the learned base with it held at this size is worse on held-out data than without it (gain "
-                    f"{lc['gain']:.3g} [{lc['ci'][0]:.3g}, {lc['ci'][1]:.3g}]): it carries what the parametric "
-                    "base misfits, not an effect both bases show"))
-        out[key] = v
-    return out

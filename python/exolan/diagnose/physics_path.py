@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from ..runio import jsonable
-from . import physics, rules, stats, subjects
+from . import physics, physics_checks, rules, stats, subjects
 from .candidates import LIBRARY, blank_entry
 from .export import extend
 from .fit import predict, sq_errors
@@ -99,7 +99,7 @@ def evidence(phys: physics.PhysicsResult, s, key: tuple, groups: np.ndarray, kin
 
 def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
     """The report's candidate entries from the physics-first verdicts (the same keys as the learned path's)."""
-    ver = physics.verdicts(phys)
+    ver = physics_checks.verdicts(phys)
     subjects = sorted({m["subject"] for m in flat.trial_meta})
     held = flat.index("held")
     groups, kind = sample_groups(flat, held)
@@ -201,7 +201,7 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     held = flat.index("held")
     fit = fit or (lambda terms: extended_model(base, flat, s, terms, phys, refit_terms_frozen))
     errors = errors or (lambda m: sq_errors(m, flat, held).sum(1))
-    ver = physics.verdicts(phys)
+    ver = physics_checks.verdicts(phys)
     keys = [k for k in phys.accepted if k[1] in joint_ids and ver[k]["status"] == "accepted"]
     if not keys:
         return {}

@@ -80,7 +80,7 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
     most (every linear term at once) against the learned reference; the selection runs on the candidates of the
     joints where it is not worse on held-out data, then the cross-check, then the gate again with the accepted terms
     only. Returns the gate with `paths`: joint name -> the path that decides its candidates."""
-    from . import physics, physics_path, physics_subjects
+    from . import physics, physics_checks, physics_path, physics_subjects
 
     first = gate(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
                  what="the parametric base with every linear candidate term")
@@ -92,7 +92,7 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
         physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m), joints=passing)
         physics_subjects.take(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m))
         log(s, phys.summary(flat.joints))
-        physics.cross_check(phys, flat, physics_path.learned_residual(ref, flat), passing, log=lambda m: log(s, m))
+        physics_checks.cross_check(phys, flat, physics_path.learned_residual(ref, flat), passing, log=lambda m: log(s, m))
         second = gate(phys.e_held, ref, flat, passing, n_boot=s.n_boot,
                       what="the parametric base with its accepted terms")
         joints.update({nm: dict(v, model=second["model"]) for nm, v in second["joints"].items()})

@@ -1,0 +1,67 @@
+"""Rules 5 and 6 of physics first (`physics` docstring), the checks against the learned base: the accepted terms
+fitted on the learned base's residual (`cross_check`), and every term's verdict with both checks (`verdicts`;
+rule 6's refits live in `physics_path.learned_check`)."""
+from __future__ import annotations
+
+import numpy as np
+
+from . import ident
+from .physics import PhysicsResult, term_estimate
+
+
+def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=None) -> None:
+    """Rule 5: the candidate terms fitted on the learned base's residual (training rows, the same low-pass),
+    with a constant only: `res.cross`; a disagreement widens the finding's interval or makes it ambiguous."""
+    probs = res._probs
+    for j in joint_ids:
+        prob = probs[j]
+        terms = [e for e, jj in res.accepted if jj == j]
+        if not terms:
+            continue
+        sig = prob.sig
+        r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
+        sig_r = ident.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
+        sig_r.tau[:, j] = r
+        one = np.ones((len(r), 1))
+        p = ident.JointProblem(sig_r, j, one, ["const"], prob.ctx)
+        p.w = prob.w
+        f = p.fit(terms)
+        for e in terms:
+            res.cross[(e, j)] = term_estimate(p, f, e, flat.joints[j])
+            if log:
+                c, m = res.cross[(e, j)], res.estimates[(e, j)]
+                log(f"cross-check {e} on {flat.joints[j]}: parametric {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
+                    f"on the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]")
+
+
+def verdicts(res: PhysicsResult) -> dict:
+    """(effect, j) -> dict(status, reason, estimate, ci, note): rules 2-6 together."""
+    out = {}
+    for key, (status, reason) in res.status.items():
+        v = dict(status=status, reason=reason)
+        if key in res.estimates and status == "accepted":
+            m = res.estimates[key]
+            v.update(estimate=m.estimate, ci=list(m.ci))
+            c = res.cross.get(key)
+            if c is not None:
+                if c.p > res.alpha:
+                    v.update(status="ambiguous", reason=reason + f"; but the learned base's residual shows no such term "
+                             f"({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], p {c.p:.2g}): the parametric base may "
+                             "be what misses it")
+                elif c.theta * m.theta < 0:     # a two-sided term seen both ways: the span holds no effect
+                    v.update(status="ambiguous", reason=reason + f"; but on the learned base's residual it points the "
+                             f"other way ({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}] against {m.estimate:.4g}): "
+                             "the two bases do not agree that there is such an effect")
+                elif c.ci[1] < m.ci[0] or c.ci[0] > m.ci[1]:
+                    v["ci"] = [min(m.ci[0], c.ci[0]), max(m.ci[1], c.ci[1])]
+                    v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
+                                 f"the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]; the "
+                                 "interval spans both")
+            lc = res.learned_check.get(key)
+            if lc is not None and v["status"] == "accepted" and lc["ci"][1] < 0:
+                v.update(status="ambiguous", reason=v["reason"] + (
+                    f"; but the learned base with it held at this size is worse on held-out data than without it (gain "
+                    f"{lc['gain']:.3g} [{lc['ci'][0]:.3g}, {lc['ci'][1]:.3g}]): it carries what the parametric "
+                    "base misfits, not an effect both bases show"))
+        out[key] = v
+    return out
