@@ -28,10 +28,11 @@ Rule, in plain words (the report states it):
 6. The learned base's check (`physics_path.learned_check`): the learned base with the term held at its parametric
    size, its networks refitted as the reference's were, must not be worse on held-out data than without it (the
    paired gain's 95 % CI not wholly below 0): one accepted term against the reference, several by each one's own
-   share (all held against all but this one: a term that mimics another accepted one passes alone by proxy). A base that predicts better
-   can absorb a real effect (then it gains nothing, but loses nothing either); where holding the term costs it
-   accuracy, the term carries what the parametric base's misfit put in it (an exo-driven column copies the joint
-   torque, hence that misfit too), and it is `ambiguous`. A check that can only remove: no level is spent.
+   share (all held against all but this one: a term that mimics another accepted one passes alone by proxy).
+   A base that predicts better can absorb a real effect (then it gains nothing, but loses nothing either); where
+   holding the term costs it accuracy, the term carries what the parametric base's misfit put in it (an
+   exo-driven column copies the joint torque, hence that misfit too), and it is `ambiguous`. A check that can
+   only remove: no level is spent.
 """
 from __future__ import annotations
 

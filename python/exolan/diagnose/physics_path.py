@@ -34,9 +34,10 @@ RULE = ("Physics first: every candidate term was fitted jointly with a parametri
         "Rivals that held-out data cannot separate are ambiguous (a nested pair: the simpler is taken). The same "
         "terms fitted on the learned base's residual cross-check the sizes: where the two intervals do not "
         "overlap the finding reports both and its interval spans both; where that residual shows no such term, "
-        "or one of the other sign, it is ambiguous. Last, the terms are held at their sizes in the learned base, whose networks are "
-        "refitted as the reference's: where that base is worse on held-out data with a term than without it (beside "
-        "the other accepted terms), the term carries what the parametric base misfits and is ambiguous.")
+        "or one of the other sign, it is ambiguous. Last, the terms are held at their sizes in the learned base, "
+        "whose networks are refitted as the reference's: where that base is worse on held-out data with a term "
+        "than without it (beside the other accepted terms), the term carries what the parametric base misfits "
+        "and is ambiguous.")
 
 
 def adequacy(e_param: dict[int, np.ndarray], ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
