@@ -167,10 +167,16 @@ def with_form(e, form: dict) -> None:
         e.estimate_by_subject = form["estimate_by_subject"]
 
 
-def extended_model(base, flat, s, accepted: list, phys: physics.PhysicsResult, refit_frozen):
-    """The learned base with the accepted terms held at their physical sizes (a subject form's per subject), its
-    networks refitted with the reference's schedule and minibatches (so it differs from the reference by the terms
-    alone)."""
+def held_terms(phys: physics.PhysicsResult, joint_ids) -> tuple[list, dict]:
+    """The terms physics first accepts on `joint_ids` so far (rules 1-5; rule 6 needs the learned base's refits)
+    and their `init` at the physical sizes: what the learned path's data are compensated for (`compensate`)."""
+    ver = physics_checks.verdicts(phys)
+    keys = [k for k in phys.accepted if k[1] in joint_ids and ver[k]["status"] == "accepted"]
+    return keys, term_init(phys, keys)
+
+
+def term_init(phys: physics.PhysicsResult, accepted: list) -> dict:
+    """`ExtendedModel`'s init of the accepted terms at their physical sizes (a subject form's per subject)."""
     init: dict = {}
     for eff, j in accepted:
         m = phys.estimates[(eff, j)]
@@ -183,7 +189,13 @@ def extended_model(base, flat, s, accepted: list, phys: physics.PhysicsResult, r
             init.setdefault("stribeck_vs", {})[j] = m.nu
         if form:
             init = subjects.gated(init, form, eff, j)
-    ext = extend(base, flat, accepted, init=init, max_delay=s.max_delay)
+    return init
+
+
+def extended_model(base, flat, s, accepted: list, phys: physics.PhysicsResult, refit_frozen):
+    """The learned base with the accepted terms held at their physical sizes (`term_init`), its networks refitted
+    with the reference's schedule and minibatches (so it differs from the reference by the terms alone)."""
+    ext = extend(base, flat, accepted, init=term_init(phys, accepted), max_delay=s.max_delay)
     refit_frozen(ext, flat, s, 1)
     return ext
 
@@ -300,11 +312,14 @@ def beside(learned: dict, results: list, phys: physics.PhysicsResult, flat, adeq
     a physics-first finding there says it is sized by the parametric base alone."""
     from .results import public as _public
 
+    held = set(learned.get("compensated") or ())     # terms the learned path's data were compensated for
     for e in results:
         if e["status"] == "accepted":
             e["note"] = ((e.get("note") + "; ") if e.get("note") else "") + (
-                "sized by the parametric base (physics first decided this joint); the extended model carries the "
-                "learned path's terms only")
+                "sized by the parametric base (physics first decided this joint); " +
+                ("the extended model holds it at that size (the learned path was fitted with it taken out of the data)"
+                 if (e["effect"], flat.joints.index(e["joint"])) in held else
+                 "the extended model carries the learned path's terms only"))
     rep = learned["report"]
     rep["findings"] += [_public(e) for e in results if e["status"] == "accepted"]
     rep["rejected"] += [_public(e) for e in results if e["status"] != "accepted"]

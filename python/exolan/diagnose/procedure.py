@@ -130,6 +130,24 @@ def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, work
                 twin_d=twin_d)
 
 
+def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids) -> tuple[Session, str]:
+    """Step 1: the base, the fit weights and the reference refit, in the learned path's `Session` (every decision
+    compares held-out errors weighted as the fits are; what the report calls a held-out gain is the unweighted one,
+    the user's torque error). Returns it and the base's description."""
+    base, base_start, base_source = fit_base(flat, s, model)
+    held = flat.index("held")
+    w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
+    ref = copy.deepcopy(base)
+    refit(ref, flat, s)
+    ss = Session(flat=flat, s=s, tools=tools, held=held, w_held=w_held,
+                 scale="misfit-weighted" if w_held is not None else "unweighted", base=base, base_start=base_start,
+                 ref=ref, e_ref_user=None, e_ref=None, sigma_r=float("nan"), twin_d=[], joint_ids=joint_ids,
+                 budget=Budget(s.alpha, sum(1 for eff in s.effects for _ in joint_ids
+                                            if flat.has_exo or not LIBRARY[eff].needs_exo)), workers=workers)
+    ss.e_ref_user, ss.e_ref = ss.errors(ref)
+    return ss, base_source
+
+
 def run(data, model=None, settings: Settings | None = None, trials_loaded=None, tools: Tools | None = None) -> dict:
     """The whole procedure; returns the result dict (JSON-ready parts plus objects for the report). `tools`: the
     learned path's fits and judgements (`session.Tools`; tests pass stubs)."""
@@ -150,41 +168,39 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
         phys = physics.setup(flat, s.effects, joint_ids, alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay)
         log(s, f"parametric base fitted ({phys.seconds:.1f} s)")
 
-    # 1. the base, the weights, the reference refit (every decision compares held-out errors weighted as the fits
-    #    are; what the report calls a held-out gain is the unweighted one, the user's torque error)
     step(s, "1/7 base and reference")
-    base, base_start, base_source = fit_base(flat, s, model)
-    w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
-    scale = "misfit-weighted" if w_held is not None else "unweighted"
-    ref = copy.deepcopy(base)
-    refit(ref, flat, s)
-    ss = Session(flat=flat, s=s, tools=tools, held=held, w_held=w_held, scale=scale, base=base, base_start=base_start,
-                 ref=ref, e_ref_user=None, e_ref=None, sigma_r=float("nan"), twin_d=[], joint_ids=joint_ids,
-                 budget=Budget(s.alpha, sum(1 for eff in s.effects for _ in joint_ids
-                                            if flat.has_exo or not LIBRARY[eff].needs_exo)), workers=workers)
-    ss.e_ref_user, ss.e_ref = ss.errors(ref)
-    adequate = physics_first(flat, s, ref, joint_ids, phys, tools.adequacy) if phys is not None else None
+    ss, base_source = reference(flat, s, model, tools, workers, joint_ids)
+    raw = ss
+    adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy) if phys is not None else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
     # joints whose own gate passed, the learned path the others'. (A candidate whose columns touched several
     # joints' equations would go to physics first only if every joint it touches passed; none does today.)
     phys_joints = [j for j in joint_ids if adequate and adequate["paths"][flat.joints[j]] == "physics first"]
     learned_joints = [j for j in joint_ids if j not in phys_joints]
+    from . import compensate, physics_path
+    held_terms, held_init = physics_path.held_terms(phys, phys_joints) if phys_joints and learned_joints else ([], {})
+    if held_terms:      # the learned path tests its joints with physics first's terms taken out of the data
+        log(s, "the learned path's data: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in held_terms) +
+               " removed at their physical sizes; its base and reference fitted again on them")
+        ss, base_source = reference(compensate.data(flat, held_terms, held_init, s.max_delay), s, model, tools,
+                                    workers, joint_ids)
     # the physics path decides nothing on the refit noise: one twin measures it for the report
-    noise = refit_noise(base, flat, s, ss.e_ref, ss.errors, max(int(s.n_twins), 1) if learned_joints else 1, scale,
-                        workers)
+    noise = refit_noise(ss.base, ss.flat, s, ss.e_ref, ss.errors,
+                        max(int(s.n_twins), 1) if learned_joints else 1, ss.scale, workers)
     ss.sigma_r, ss.twin_d = noise["sigma"], noise.pop("twin_d")
     log(s, f"reference held-out MSE {ss.e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r "
-           f"{ss.sigma_r:.3g} ({scale}, {len(noise['twin_differences'])} twin refits)")
+           f"{ss.sigma_r:.3g} ({ss.scale}, {len(noise['twin_differences'])} twin refits)")
     learned = None
     if learned_joints:      # the budget keeps m of the whole family: no path's thresholds loosen (`physics.select`)
         ss.joint_ids = learned_joints
         learned = learned_path(ss, trials, phys, adequate, base_source, noise)
+        if held_terms:
+            learned = compensate.results_on_raw(learned, flat, held_terms, held_init, s.max_delay)
     if not phys_joints:
         return learned
-    from . import physics_path
     limits = (learned["report"]["detection_limits"] if learned else
-              all_limits(flat, s, base_start, ref, held, w_held, ss.sigma_r, ss.budget.single()))
-    return physics_path.report(flat, s, trials, base, ref, base_source, noise, phys, adequate, phys_joints,
+              all_limits(flat, s, raw.base_start, raw.ref, held, raw.w_held, ss.sigma_r, ss.budget.single()))
+    return physics_path.report(flat, s, trials, raw.base, raw.ref, base_source, noise, phys, adequate, phys_joints,
                                held, limits, lambda m: log(s, m), learned=learned)
 
 
