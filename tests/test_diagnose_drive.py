@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from exolan.diagnose import physics, wls
+from exolan.diagnose import physics, physics_checks, wls
 from exolan.diagnose.candidates import FITTED
 from exolan.diagnose.flat import prepare
 from exolan.diagnose.synthetic import servo_drive, servo_trial, write_layout2
@@ -297,3 +297,31 @@ def test_a_physics_first_finding_with_own_sizes_per_subject_is_reported_and_expo
         with safe_open(str(tmp_path / f"extended_{u}.safetensors"), "np") as fh:
             assert fh.get_tensor("ext.damping")[0, 0] == pytest.approx(f["estimate_by_subject"][u]["estimate"],
                                                                         rel=1e-5)
+
+
+def test_a_term_the_checks_set_aside_leaves_the_joint_fit_and_the_others_are_sized_without_it():
+    """Rule 5 sets a term aside (here stubbed: the learned base's residual shows no gain): the strap that was
+    accepted beside it is then sized by the joint fit without it, as the extended model will hold it, and is
+    cross-checked again; the gain keeps the size it was accepted at, ambiguous."""
+    import dataclasses
+
+    rng = np.random.default_rng(4)
+    tr = _strap_pendulum(rng, 100.0)
+    tr.tau = tr.tau + 0.2 * tr.tau_e            # a torque gain beside the strap: 1/(1 − 0.2) = 1.25
+    flat = prepare([tr])
+    res = physics.identify(flat, ("torque_gain", "strap_compliance"), [0])
+    assert sorted(e for e, _ in res.accepted) == ["strap_compliance", "torque_gain"], res.summary(("knee",))
+    prob = res._probs[0]
+    residual = (prob.sig.tau_raw[:, 0] - res._base_fits[0].pred)[:, None]
+    physics_checks.cross_check(res, flat, residual, [0])
+    before = {e: res.estimates[(e, 0)].estimate for e in ("torque_gain", "strap_compliance")}
+    strap_cross = res.cross[("strap_compliance", 0)]
+    res.cross[("torque_gain", 0)] = dataclasses.replace(res.cross[("torque_gain", 0)], p=1.0)
+    assert physics_checks.settle(res, flat, residual, [0], n_boot=200) == [0]
+    alone = physics.term_estimate(prob, prob.fit(["strap_compliance"]), "strap_compliance", "knee").estimate
+    ver = physics_checks.verdicts(res)
+    assert ver[("torque_gain", 0)]["status"] == "ambiguous" and ver[("strap_compliance", 0)]["status"] == "accepted"
+    assert res.estimates[("strap_compliance", 0)].estimate == pytest.approx(alone, rel=1e-9)
+    assert abs(alone / before["strap_compliance"] - 1) > 0.05, (alone, before)     # the gain had taken a share
+    assert res.estimates[("torque_gain", 0)].estimate == before["torque_gain"]
+    assert res._fits[0].terms == ["strap_compliance"] and res.cross[("strap_compliance", 0)] is not strap_cross

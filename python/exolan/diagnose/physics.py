@@ -321,28 +321,34 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             f"(p {p:.2g}, step {r})")
     _rivals(res, probs, cur, accepted, flat, alpha / max(len(cands), 1), n_boot)
     # the final joint fits: every accepted term's estimate and interval, its own held-out share, the base's size
-    held_idx = flat.index("held").numpy()
-    res.held_rows = held_idx
+    res.held_rows = flat.index("held").numpy()
     res.e_held = {}
-    for j in joint_ids:
-        prob = probs[j]
-        f, gains, withouts = _held_out_fit(res, prob, accepted[j], flat.joints[j], j, n_boot)
-        cur[j] = f
-        for e in accepted[j]:
-            res.estimates[(e, j)] = term_estimate(prob, f, e, flat.joints[j])
-            res.accepted.append((e, j))
-            res.term_gain[(e, j)] = gains[e]
-            res.term_rows[(e, j)] = prob.held_sq(withouts[e], held_idx) - prob.held_sq(f, held_idx)
-        res.base[flat.joints[j]] = _base_sizes(prob, f)
-        res.e_held[j] = prob.held_sq(f, held_idx)
-        sel = prob.held
-        y = prob.sig.tau_raw[sel, j]
-        mse = float(np.mean((y - f.pred[sel]) ** 2))
-        res.heldout[flat.joints[j]] = dict(rms=math.sqrt(mse), r2=float(1 - mse / np.var(y)),
-                                           rms_filtered=float(np.sqrt(np.mean((prob.y - f.pred)[sel] ** 2))))
-    res.seconds = time.time() - t0
     res._probs, res._fits = probs, cur      # for the cross-check and the extended model
+    for j in joint_ids:
+        final_fit(res, flat, j, accepted[j], n_boot)
+        res.accepted += [(e, j) for e in accepted[j]]
+    res.seconds = time.time() - t0
     return res
+
+
+def final_fit(res: PhysicsResult, flat, j: int, terms: list, n_boot: int) -> None:
+    """Joint j's final fit of `terms` (a term that no longer earns its held-out share, or whose interval leaves its
+    domain, is dropped: `_held_out_fit`): every term's estimate and interval, its own held-out share, the base's
+    sizes and the joint's held-out errors. Also where a later rule sets a term aside (`physics_checks.settle`)."""
+    prob, held_idx = res._probs[j], res.held_rows
+    f, gains, withouts = _held_out_fit(res, prob, terms, flat.joints[j], j, n_boot)
+    res._fits[j] = f
+    for e in terms:
+        res.estimates[(e, j)] = term_estimate(prob, f, e, flat.joints[j])
+        res.term_gain[(e, j)] = gains[e]
+        res.term_rows[(e, j)] = prob.held_sq(withouts[e], held_idx) - prob.held_sq(f, held_idx)
+    res.base[flat.joints[j]] = _base_sizes(prob, f)
+    res.e_held[j] = prob.held_sq(f, held_idx)
+    sel = prob.held
+    y = prob.sig.tau_raw[sel, j]
+    mse = float(np.mean((y - f.pred[sel]) ** 2))
+    res.heldout[flat.joints[j]] = dict(rms=math.sqrt(mse), r2=float(1 - mse / np.var(y)),
+                                       rms_filtered=float(np.sqrt(np.mean((prob.y - f.pred)[sel] ** 2))))
 
 
 def _test(prob: ident.JointProblem, accepted: list, e: str, masks) -> tuple:

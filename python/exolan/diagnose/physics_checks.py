@@ -1,12 +1,12 @@
 """Rules 5 and 6 of physics first (`physics` docstring), the checks against the learned base: the accepted terms
-fitted on the learned base's residual (`cross_check`), and every term's verdict with both checks (`verdicts`;
-rule 6's refits live in `physics_path.learned_check`)."""
+fitted on the learned base's residual (`cross_check`), every term's verdict with both checks (`verdicts`; rule 6's
+refits live in `physics_path.learned_check`), and the sizes of the terms that remain (`settle`)."""
 from __future__ import annotations
 
 import numpy as np
 
-from . import ident
-from .physics import PhysicsResult, term_estimate
+from . import ident, physics_subjects
+from .physics import PhysicsResult, final_fit, term_estimate
 
 
 def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=None) -> None:
@@ -15,7 +15,7 @@ def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=N
     probs = res._probs
     for j in joint_ids:
         prob = probs[j]
-        terms = [e for e, jj in res.accepted if jj == j]
+        terms = [e for e, jj in res.accepted if jj == j and e in res._fits[j].terms]     # not those set aside
         if not terms:
             continue
         sig = prob.sig
@@ -65,3 +65,30 @@ def verdicts(res: PhysicsResult) -> dict:
                     "base misfits, not an effect both bases show"))
         out[key] = v
     return out
+
+
+def settle(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, n_boot: int, log=None) -> list:
+    """A term the checks set aside leaves its joint's fit: the terms that remain are sized by the joint fit without
+    it (a term held beside them takes part of their signal: a knee gain beside a strap moved its stiffness by a
+    quarter), their subject forms and cross-checks redone, until no further term is set aside. The set-aside term
+    keeps the size it had when it was accepted. Returns the joints refitted."""
+    redone = []
+    while True:
+        ver = verdicts(res)
+        aside = {j: [e for e in res._fits[j].terms if (e, j) in ver and ver[(e, j)]["status"] != "accepted"]
+                 for j in joint_ids if j in res._fits}
+        redo = [j for j, out in aside.items() if out]
+        if not redo:
+            return redone
+        for j in redo:
+            keep = [e for e in res._fits[j].terms if e not in aside[j]]
+            if log:
+                log(f"physics: {', '.join(aside[j])} on {flat.joints[j]} set aside; "
+                    + (f"{', '.join(keep)} sized without it" if keep else "no term left in the joint fit"))
+            for e in res._fits[j].terms:
+                res.forms.pop((e, j), None)
+            res._probs[j].split = {}
+            final_fit(res, flat, j, keep, n_boot)
+        physics_subjects.take(res, flat, n_boot, log=log, joints=redo)
+        cross_check(res, flat, residual, redo, log=log)
+        redone += [j for j in redo if j not in redone]

@@ -266,6 +266,9 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     """The physics-first diagnosis' result dict (`procedure.run`'s return shape) for the joints `joint_ids`;
     `learned`: the learned path's result for the other joints (None: physics first decides every joint)."""
     held_models = learned_check(phys, base, ref, flat, s, joint_ids, log)
+    # a term rule 6 sets aside leaves its joint's fit; the others' sizes then change, and rule 6's model of them too
+    resized = physics_checks.settle(phys, flat, learned_residual(ref, flat), joint_ids, n_boot=max(s.n_boot // 2, 200),
+                                    log=log)
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]
     if learned is not None and (not accepted or any(e["status"] == "accepted" for e in learned["results"])):
@@ -284,7 +287,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     ext_model, ro_ext, extended = None, None, None
     if accepted:
         ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log,
-                                                ready=held_models.get(frozenset(accepted)))
+                                                ready=None if resized else held_models.get(frozenset(accepted)))
         if extended["heldout_gain_ci"][1] <= 0:
             for e in results:
                 if e["status"] == "accepted":

@@ -71,18 +71,19 @@ def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, ro
     return out
 
 
-def take(res: physics.PhysicsResult, flat, n_boot: int, log=None) -> None:
-    """Every accepted linear term of `res` given its subject form where the data ask for one (`res.forms`); the
-    joint's held-out errors (`res.e_held`, which the second gate reads) then those of the form's fit."""
+def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -> None:
+    """Every accepted linear term of `res` in its joint's fit given its subject form where the data ask for one
+    (`res.forms`); the joint's held-out errors (`res.e_held`, which the second gate reads) then those of the form's
+    fit. `joints`: only these (default: every joint with an accepted term)."""
     who = flat.user_index()
     if who is None:
         return
     users, row_user = who
-    for j in sorted({jj for _, jj in res.accepted}):
+    for j in sorted({jj for _, jj in res.accepted if joints is None or jj in joints}):
         prob, forms = res._probs[j], {}
         prob.split = {}             # the forms are judged against the joint fit with every term shared
         shared = prob.fit(res._fits[j].terms, intervals=False)
-        for e in [x for x, jj in res.accepted if jj == j and not ident.TERMS[x].fixed]:   # a delay's size is its ν
+        for e in [x for x in res._fits[j].terms if not ident.TERMS[x].fixed]:   # a delay's size is its ν
             form = form_of(prob, shared, e, users, row_user, flat, n_boot)
             if form is not None:
                 forms[e] = form
