@@ -325,3 +325,39 @@ def test_a_term_the_checks_set_aside_leaves_the_joint_fit_and_the_others_are_siz
     assert abs(alone / before["strap_compliance"] - 1) > 0.05, (alone, before)     # the gain had taken a share
     assert res.estimates[("torque_gain", 0)].estimate == before["torque_gain"]
     assert res._fits[0].terms == ["strap_compliance"] and res.cross[("strap_compliance", 0)] is not strap_cross
+
+
+def test_rule_6_judges_again_the_terms_that_remain_after_one_is_set_aside():
+    """Rule 6 sets a gain aside (stubbed refits: beside the strap it costs held-out accuracy); the strap is then
+    sized without it and rule 6 judges the strap again, at that size and alone, and that model is the one kept."""
+    from exolan.diagnose import physics_path
+    from exolan.diagnose.settings import Settings
+
+    rng = np.random.default_rng(4)
+    tr = _strap_pendulum(rng, 100.0)
+    tr.tau = tr.tau + 0.2 * tr.tau_e
+    flat = prepare([tr])
+    res = physics.identify(flat, ("torque_gain", "strap_compliance"), [0])
+    strap, gain = ("strap_compliance", 0), ("torque_gain", 0)
+    assert sorted(res.accepted) == sorted([strap, gain]), res.summary(("knee",))
+    prob = res._probs[0]
+    residual = (prob.sig.tau_raw[:, 0] - res._base_fits[0].pred)[:, None]
+    physics_checks.cross_check(res, flat, residual, [0])
+    n = len(flat.index("held"))
+    e_ref = 1.0 + 0.1 * rng.standard_normal(n)
+    cost = {frozenset([strap]): -0.10, frozenset([gain]): -0.05, frozenset([strap, gain]): -0.08}
+    seen = []
+
+    def fit(terms):
+        seen.append((frozenset(terms), res.estimates[strap].estimate))
+        return frozenset(terms)
+
+    models = physics_path.checked(res, None, "ref", flat, Settings(n_boot=300, workers=1), [0], residual,
+                                  lambda m: None, fit=fit,
+                                  errors=lambda m: e_ref + (0.0 if m == "ref" else cost[m] + 0.002 * rng.standard_normal(n)))
+    ver = physics_checks.verdicts(res)
+    assert ver[gain]["status"] == "ambiguous" and ver[strap]["status"] == "accepted", ver
+    assert len(seen) == 4 and seen[0][0] == frozenset([strap, gain]), seen         # all, each without one, ...
+    assert {t for t, _ in seen[1:3]} == {frozenset([gain]), frozenset([strap])} and seen[3][0] == frozenset([strap])
+    assert seen[-1][1] != seen[0][1]                       # judged again at the size fitted without the gain
+    assert "alone" in res.learned_check[strap]["model"] and set(models) == {frozenset([strap])}

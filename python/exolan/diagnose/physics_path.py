@@ -236,6 +236,16 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     return {frozenset(c): m for c, m in zip(combos, models)}
 
 
+def checked(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, residual, log, fit=None, errors=None) -> dict:
+    """Rule 6 until nothing changes: a term it sets aside leaves its joint's fit (`physics_checks.settle`), the terms
+    that remain are sized without it, and rule 6 judges them again at those sizes (their share was measured beside
+    it). Returns the last check's models (`learned_check`; `fit`, `errors`: stubs in tests)."""
+    models = learned_check(phys, base, ref, flat, s, joint_ids, log, fit=fit, errors=errors)
+    while physics_checks.settle(phys, flat, residual, joint_ids, n_boot=max(s.n_boot // 2, 200), log=log):
+        models = learned_check(phys, base, ref, flat, s, joint_ids, log, fit=fit, errors=errors)
+    return models
+
+
 def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
     """The learned path: every candidate entry carries the parametric estimate; a disagreement beyond both
     intervals is said in a note (not resolved by picking one)."""
@@ -265,10 +275,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
            learned: dict | None = None) -> dict:
     """The physics-first diagnosis' result dict (`procedure.run`'s return shape) for the joints `joint_ids`;
     `learned`: the learned path's result for the other joints (None: physics first decides every joint)."""
-    held_models = learned_check(phys, base, ref, flat, s, joint_ids, log)
-    # a term rule 6 sets aside leaves its joint's fit; the others' sizes then change, and rule 6's model of them too
-    resized = physics_checks.settle(phys, flat, learned_residual(ref, flat), joint_ids, n_boot=max(s.n_boot // 2, 200),
-                                    log=log)
+    held_models = checked(phys, base, ref, flat, s, joint_ids, learned_residual(ref, flat), log)
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]
     if learned is not None and (not accepted or any(e["status"] == "accepted" for e in learned["results"])):
@@ -287,7 +294,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     ext_model, ro_ext, extended = None, None, None
     if accepted:
         ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log,
-                                                ready=None if resized else held_models.get(frozenset(accepted)))
+                                                ready=held_models.get(frozenset(accepted)))
         if extended["heldout_gain_ci"][1] <= 0:
             for e in results:
                 if e["status"] == "accepted":
