@@ -55,13 +55,18 @@ def _pooled_base(model, trials, pelvis_surge: bool = True, lim_cop: bool = True)
 def diagnose(data, model=None, out=None, quick: bool = False, **settings) -> dict:
     """Run the diagnosis; returns the diagnosis.json dict (also written to `out` when given).
 
-    Torch runs on `EXOLAN_THREADS` threads (default 1) for the call: on two cores shared with other jobs, two
-    threads made a base-fit step slower than one (measured: docs/DIAGNOSIS.md, "Measurements behind the code")."""
+    Torch and numpy's BLAS run on `EXOLAN_THREADS` threads (default 1) for the call: on two cores shared with other
+    jobs, two threads made a base-fit step slower than one, and physics first's least squares 2x slower (10 %
+    faster alone; docs/DIAGNOSIS.md, "Measurements behind the code")."""
     import os
-    threads = torch.get_num_threads()
-    torch.set_num_threads(max(1, int(os.environ.get("EXOLAN_THREADS", 1))))
+
+    from threadpoolctl import threadpool_limits
+
+    threads, n = torch.get_num_threads(), max(1, int(os.environ.get("EXOLAN_THREADS", 1)))
+    torch.set_num_threads(n)
     try:
-        return _diagnose(data, model, out, quick, **settings)
+        with threadpool_limits(limits=n, user_api="blas"):
+            return _diagnose(data, model, out, quick, **settings)
     finally:
         torch.set_num_threads(threads)
 
