@@ -163,14 +163,16 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     log(s, f"{len(trials)} trials, {flat.q.shape[0]} samples ({len(flat.index('train'))} train, {len(held)} held out), "
            f"joints {flat.joints} {flat.joint_types}, exo={flat.has_exo}, insole={flat.has_insole}")
     joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
-    phys = None
-    if s.physics_first:
+    def parametric():
         from . import physics
-        phys = physics.setup(flat, s.effects, joint_ids, alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay)
-        log(s, f"parametric base fitted ({phys.seconds:.1f} s)")
+        p = physics.setup(flat, s.effects, joint_ids, alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay)
+        log(s, f"parametric base fitted ({p.seconds:.1f} s)")
+        return p
 
-    step(s, "1/7 base and reference")
-    ss, base_source = reference(flat, s, model, tools, workers, joint_ids)
+    step(s, "1/7 base and reference" + (" beside the parametric base" if s.physics_first else ""))
+    # independent (numpy and torch, each on one thread): side by side where a second worker is free
+    (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids),
+                                           parametric if s.physics_first else lambda: None])
     raw = ss
     adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy) if phys is not None else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
