@@ -361,3 +361,38 @@ def test_rule_6_judges_again_the_terms_that_remain_after_one_is_set_aside():
     assert {t for t, _ in seen[1:3]} == {frozenset([gain]), frozenset([strap])} and seen[3][0] == frozenset([strap])
     assert seen[-1][1] != seen[0][1]                       # judged again at the size fitted without the gain
     assert "alone" in res.learned_check[strap]["model"] and set(models) == {frozenset([strap])}
+
+
+@pytest.mark.parametrize("gain_p", [0.5, 1e-12])
+def test_a_rival_pair_is_told_apart_where_only_one_of_them_shows_on_the_learned_residual(gain_p):
+    """Rule 4 made a strap and a gain in its place ambiguous; fitted on the learned base's residual (stubbed: the
+    strap shows there, the gain does not), the strap is taken at its size and the gain rejected. Where both show,
+    the pair stays ambiguous."""
+    import dataclasses
+
+    rng = np.random.default_rng(5)
+    flat = prepare([_strap_pendulum(rng, 100.0)])
+    res = physics.identify(flat, ("torque_gain", "strap_compliance"), [0])
+    strap, gain = ("strap_compliance", 0), ("torque_gain", 0)
+    assert res.accepted == [strap], res.summary(("knee",))
+    why = "held-out data cannot separate strap_compliance and torque_gain"
+    res.status[strap] = res.status[gain] = ("ambiguous", why)
+    res.accepted, res.rivalries = [], [("strap_compliance", "torque_gain", 0)]
+    physics.final_fit(res, flat, 0, [], n_boot=200)
+    prob = res._probs[0]
+    residual = (prob.sig.tau_raw[:, 0] - res._fits[0].pred)[:, None]
+
+    def cross(j, terms):
+        f = prob.fit(terms)
+        return {t: dataclasses.replace(physics.term_estimate(prob, f, t, "knee"),
+                                       p=gain_p if t == "torque_gain" else 1e-12) for t in terms}
+
+    redone = physics_checks.rivals(res, flat, residual, [0], n_boot=200, cross=cross)
+    ver = physics_checks.verdicts(res)
+    if gain_p > 0.05:
+        assert redone == [0] and res._fits[0].terms == ["strap_compliance"]
+        assert ver[strap]["status"] == "accepted" and ver[gain]["status"] == "rejected", ver
+        assert abs(res.estimates[strap].estimate / 100.0 - 1) < 0.05, res.estimates[strap]
+        assert "shows no such term" in ver[gain]["reason"]
+    else:
+        assert redone == [] and ver[strap]["status"] == ver[gain]["status"] == "ambiguous", ver

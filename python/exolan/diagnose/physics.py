@@ -18,8 +18,11 @@ Rule, in plain words (the report states it):
    (`consistency`): fitted trial by trial, the term's 95 % prediction interval for a new recording must lie on the
    physical side of no effect — a constant of the joint, not a shape of the base's misfit.
 4. Rivals (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap): an accepted term whose rival, put in its
-   place, is significant there (same threshold) and not worse on held-out data (CI of the difference reaching
-   0) is `ambiguous` with it — unless one reduces to the other (Stribeck to Coulomb): the simpler is taken.
+   place, is significant there (same threshold), sized inside its physical domain with a finite interval (as an
+   accepted term must be) and not worse on held-out data (CI of the difference reaching 0) is `ambiguous` with it
+   — unless one reduces to the other (Stribeck to Coulomb): the simpler is taken. Where the learned base's
+   residual shows only one of the two in their shared place (rule 5's objection to the other), that one is taken
+   (`physics_checks.rivals`).
 5. Cross-check: the same terms fitted on the learned base's residual (a constant and the terms only). Where
    the two intervals do not overlap, the finding reports both and its interval spans both: the data size the
    effect only up to that disagreement. Where the learned base's residual shows no effect at all, or one of the
@@ -83,6 +86,7 @@ class PhysicsResult:
     term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
     term_rows: dict = field(default_factory=dict)         # (effect, j) -> that gain per held row of the flat
     forms: dict = field(default_factory=dict)             # (effect, j) -> its subject form (`physics_subjects`)
+    rivalries: list = field(default_factory=list)         # (accepted term, its rival, j): rule 4's ambiguous pairs
     seconds: float = 0.0
     cutoff_hz: float = 0.0
 
@@ -294,12 +298,9 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
                     f"not significant (p {pe:.3g} > Holm's threshold {thr:.3g} at step {r} of {len(cands)})"))
             break
         pool.remove((e, j))
-        if LIBRARY[e].outside_domain(te.ci):
-            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but " + _outside_domain_text(e, te, ""))
-            continue
-        if not all(math.isfinite(v) for v in te.ci):        # rule 4 of both paths: a size the data bound
-            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but its size is not identified: the "
-                                              f"interval {_ci_text(te.ci)} reaches infinity")
+        why = _inadmissible(e, te)
+        if why:
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but {why}")
             continue
         rec["consistency"] = cons = consistency.across_trials(probs[j], f, e, split, flat)
         if cons["consistent"] is False:
@@ -374,7 +375,7 @@ def reset(res: PhysicsResult) -> None:
     it no longer decides in Holm's step-down (they would loosen every later threshold)."""
     res.accepted, res.estimates, res.tests, res.status = [], {}, [], {}
     res.base, res.heldout, res.cross, res.term_gain, res.term_rows, res.forms = {}, {}, {}, {}, {}, {}
-    res.learned_check = {}
+    res.learned_check, res.rivalries = {}, []
     res.e_held, res.held_rows = None, None
     res._fits = dict(res._base_fits)
     for prob in getattr(res, "_probs", {}).values():
@@ -414,6 +415,16 @@ def _held_out_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
                                           f"{g['gain']:.3g} [{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
 
 
+def _inadmissible(e: str, te) -> str | None:
+    """Why a significant term's size cannot be taken (outside its physical domain, or an interval that reaches
+    infinity: a size the data do not bound), or None."""
+    if LIBRARY[e].outside_domain(te.ci):
+        return _outside_domain_text(e, te, "")
+    if not all(math.isfinite(v) for v in te.ci):        # rule 4 of both paths
+        return f"its size is not identified: the interval {_ci_text(te.ci)} reaches infinity"
+    return None
+
+
 def _outside_domain_text(e: str, te, where: str) -> str:
     """The status of a term whose interval lies wholly outside its physical domain (selection and joint fit alike)."""
     return (f"outside its physical domain ({LIBRARY[e].sign}){where}: {te.estimate:.4g} {_ci_text(te.ci)}; "
@@ -443,6 +454,8 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                 alt = probs[j].fit(alt_terms)
                 if _p(probs[j], alt, rv) > thr:
                     continue
+                if _inadmissible(rv, term_estimate(probs[j], alt, rv, flat.joints[j])):
+                    continue                # what an accepted term must be, a rival must be too
                 if consistency.across_trials(probs[j], alt, rv, rv in alt.split, flat)["consistent"] is False:
                     continue                # a rival that is no constant of the joint explains nothing physical
                 d = _held_gain(probs[j].held_sq(alt), probs[j].held_sq(cur[j]), n_boot)    # > 0: e is better
@@ -465,4 +478,5 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                        f"[{d['ci'][0]:.3g}, {d['ci'][1]:.3g}])")
                 res.status[(e, j)] = ("ambiguous", why)
                 res.status[(rv, j)] = ("ambiguous", why)
+                res.rivalries.append((e, rv, j))
                 break

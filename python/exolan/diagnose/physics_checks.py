@@ -1,6 +1,7 @@
 """Rules 5 and 6 of physics first (`physics` docstring), the checks against the learned base: the accepted terms
-fitted on the learned base's residual (`cross_check`), every term's verdict with both checks (`verdicts`; rule 6's
-refits live in `physics_path.learned_check`), and the sizes of the terms that remain (`settle`)."""
+fitted on the learned base's residual (`cross_check`), rule 4's pairs told apart by it (`rivals`), every term's
+verdict with both checks (`verdicts`; rule 6's refits live in `physics_path.learned_check`), and the sizes of the
+terms that remain (`settle`)."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,25 +10,41 @@ from . import ident, physics_subjects
 from .physics import PhysicsResult, final_fit, term_estimate
 
 
+def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: list) -> dict:
+    """`terms` of joint j fitted on the learned base's residual (training rows, the same low-pass), with a constant
+    only: term -> its estimate there."""
+    prob = res._probs[j]
+    sig = prob.sig
+    r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
+    sig_r = ident.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
+    sig_r.tau[:, j] = r
+    p = ident.JointProblem(sig_r, j, np.ones((len(r), 1)), ["const"], prob.ctx)
+    p.w = prob.w
+    f = p.fit(terms)
+    return {e: term_estimate(p, f, e, flat.joints[j]) for e in terms}
+
+
+def unsupported(m, c, alpha: float) -> str | None:
+    """Rule 5's objection to a term sized `m` by the parametric base and `c` on the learned base's residual, or
+    None: the residual shows no such term, or one of the other sign (a two-sided term seen both ways)."""
+    if c.p > alpha:
+        return (f"the learned base's residual shows no such term ({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], "
+                f"p {c.p:.2g}): the parametric base may be what misses it")
+    if c.theta * m.theta < 0:
+        return (f"on the learned base's residual it points the other way ({c.estimate:.4g} [{c.ci[0]:.4g}, "
+                f"{c.ci[1]:.4g}] against {m.estimate:.4g}): the two bases do not agree that there is such an effect")
+    return None
+
+
 def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=None) -> None:
-    """Rule 5: the candidate terms fitted on the learned base's residual (training rows, the same low-pass),
-    with a constant only: `res.cross`; a disagreement widens the finding's interval or makes it ambiguous."""
-    probs = res._probs
+    """Rule 5: the accepted terms fitted on the learned base's residual (`on_residual`): `res.cross`; a
+    disagreement widens the finding's interval or makes it ambiguous."""
     for j in joint_ids:
-        prob = probs[j]
         terms = [e for e, jj in res.accepted if jj == j and e in res._fits[j].terms]     # not those set aside
         if not terms:
             continue
-        sig = prob.sig
-        r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
-        sig_r = ident.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
-        sig_r.tau[:, j] = r
-        one = np.ones((len(r), 1))
-        p = ident.JointProblem(sig_r, j, one, ["const"], prob.ctx)
-        p.w = prob.w
-        f = p.fit(terms)
-        for e in terms:
-            res.cross[(e, j)] = term_estimate(p, f, e, flat.joints[j])
+        for e, c in on_residual(res, flat, residual, j, terms).items():
+            res.cross[(e, j)] = c
             if log:
                 c, m = res.cross[(e, j)], res.estimates[(e, j)]
                 log(f"cross-check {e} on {flat.joints[j]}: parametric {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
@@ -44,14 +61,9 @@ def verdicts(res: PhysicsResult) -> dict:
             v.update(estimate=m.estimate, ci=list(m.ci))
             c = res.cross.get(key)
             if c is not None:
-                if c.p > res.alpha:
-                    v.update(status="ambiguous", reason=reason + f"; but the learned base's residual shows no such term "
-                             f"({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], p {c.p:.2g}): the parametric base may "
-                             "be what misses it")
-                elif c.theta * m.theta < 0:     # a two-sided term seen both ways: the span holds no effect
-                    v.update(status="ambiguous", reason=reason + f"; but on the learned base's residual it points the "
-                             f"other way ({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}] against {m.estimate:.4g}): "
-                             "the two bases do not agree that there is such an effect")
+                why = unsupported(m, c, res.alpha)
+                if why:
+                    v.update(status="ambiguous", reason=reason + "; but " + why)
                 elif c.ci[1] < m.ci[0] or c.ci[0] > m.ci[1]:
                     v["ci"] = [min(m.ci[0], c.ci[0]), max(m.ci[1], c.ci[1])]
                     v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
@@ -92,3 +104,41 @@ def settle(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, n_boot: in
         physics_subjects.take(res, flat, n_boot, log=log, joints=redo)
         cross_check(res, flat, residual, redo, log=log)
         redone += [j for j in redo if j not in redone]
+
+
+def rivals(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, n_boot: int, log=None, cross=None) -> list:
+    """Rule 5 for rule 4's pairs: held-out data could not separate a term and its rival; each is fitted in the place
+    they share (beside the joint's accepted terms) on the parametric base and on the learned base's residual. Where
+    exactly one of them meets rule 5's objection (`unsupported`), the other is accepted: the learned base tells them
+    apart. Both were significant at the same Holm threshold, so no level is spent. Returns the joints refitted.
+    `cross` (j, terms -> estimates on the learned residual; default `on_residual`): tests pass a stub."""
+    cross = cross or (lambda j, terms: on_residual(res, flat, residual, j, terms))
+    redone = []
+    for e, rv, j in res.rivalries:
+        if j not in joint_ids or {res.status[(e, j)][0], res.status[(rv, j)][0]} != {"ambiguous"}:
+            continue
+        prob, keep = res._probs[j], list(res._fits[j].terms)
+        why = {}
+        for t in (e, rv):
+            m = term_estimate(prob, prob.fit(keep + [t]), t, flat.joints[j])
+            why[t] = unsupported(m, cross(j, keep + [t])[t], res.alpha)
+        if (why[e] is None) == (why[rv] is None):
+            continue
+        win, lose = (e, rv) if why[e] is None else (rv, e)
+        res.status[(win, j)] = ("accepted", res.status[(win, j)][1] + f"; but in its place {lose} fails the learned "
+                                "base's cross-check, and this term passes it")
+        res.status[(lose, j)] = ("rejected", res.status[(lose, j)][1] + f"; in the place they share, " + why[lose])
+        if log:
+            log(f"physics: {win} on {flat.joints[j]} taken for its rival {lose}, which {why[lose]}")
+        for t in keep:
+            res.forms.pop((t, j), None)
+        prob.split = {}
+        terms = keep + [win]
+        final_fit(res, flat, j, terms, n_boot)          # drops a term that no longer earns its held-out share
+        if win in terms:
+            res.accepted.append((win, j))
+        redone.append(j)
+    if redone:
+        physics_subjects.take(res, flat, n_boot, log=log, joints=redone)
+        cross_check(res, flat, residual, redone, log=log)
+    return redone

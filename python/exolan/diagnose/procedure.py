@@ -94,6 +94,7 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
         log(s, phys.summary(flat.joints))
         residual = physics_path.learned_residual(ref, flat)
         physics_checks.cross_check(phys, flat, residual, passing, log=lambda m: log(s, m))
+        physics_checks.rivals(phys, flat, residual, passing, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m))
         physics_checks.settle(phys, flat, residual, passing, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m))
         second = gate(phys.e_held, ref, flat, passing, n_boot=s.n_boot,
                       what="the parametric base with its accepted terms")
