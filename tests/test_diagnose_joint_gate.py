@@ -217,3 +217,37 @@ def test_a_term_the_learned_residual_shows_with_the_other_sign_is_ambiguous():
     assert other["status"] == "ambiguous" and "other way" in other["reason"]
     same = verdict(TermEstimate("torque_gain", "knee", 1.3, [1.2, 1.4], 0.23, 0.03, 1e-9))
     assert same["status"] == "accepted" and same["ci"] == [1.2, 4.7]
+
+
+def test_a_term_rule_6_sets_aside_is_not_taken_out_of_the_learned_paths_data(arm, tmp_path):
+    """Physics first decides the elbow (its damping, 2.0, accepted by the selection), the learned path the shoulder.
+    Rule 6 (a stub: the learned base loses by holding the damping) sets the damping aside; it runs before the
+    learned path's data are compensated, so they keep the damping (before, rule 6 ran after the learned path and
+    the data had already been compensated for a term the report then calls ambiguous)."""
+    from exolan.diagnose import physics_checks
+
+    seen = []
+
+    def rule6(phys, base, ref, flat, s, joint_ids, residual, log):
+        seen.append(sorted(f"{e}:{flat.joints[j]}" for e, j in phys.accepted))
+        for key in phys.accepted:
+            phys.learned_check[key] = dict(gain=-1e-3, ci=[-2e-3, -1e-4])
+        physics_checks.settle(phys, flat, residual, joint_ids, n_boot=200, log=log)
+        return {}
+
+    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+                   rescue=False, n_twins=1, verbose=False,
+                   tools=Tools(adequacy=_gate(dict(shoulder=False, elbow=True), []), learned_check=rule6))
+    assert seen and "viscous_damping:elbow" in seen[0], "the arm's elbow damping is accepted by the selection"
+    entries = {(e["effect"], e["joint"]): e for e in rep["findings"] + rep["rejected"]}
+    damping = entries[("viscous_damping", "elbow")]
+    assert damping["status"] == "ambiguous" and "worse on held-out data" in damping["reason"]
+    assert "learned_path_compensated_for" not in rep["data"]
+
+
+def test_the_learned_paths_data_are_compensated_for_the_terms_rule_6_keeps(arm, tmp_path):
+    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+                   rescue=False, n_twins=1, verbose=False,
+                   tools=Tools(adequacy=_gate(dict(shoulder=False, elbow=True), [])))
+    assert rep["data"]["learned_path_compensated_for"] == ["viscous_damping:elbow"]
+    assert rep["physics"]["learned_check"]["viscous_damping:elbow"]["ci"][0] > 0

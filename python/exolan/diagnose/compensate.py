@@ -90,6 +90,7 @@ def results_on_raw(learned: dict, flat: Flat, terms: list, init: dict, max_delay
     """The learned path's result, fitted on the compensated data, with its models on the recorded data again: its
     base, reference and extended model carry the removed terms at their physical sizes (`on_raw`)."""
     out = dict(learned, flat=flat, compensated=list(terms))
+    out["report"]["data"]["learned_path_compensated_for"] = [f"{e}:{flat.joints[j]}" for e, j in terms]
     for key in ("base", "ref", "ext_model"):
         if learned.get(key) is not None:
             out[key] = on_raw(learned[key], flat, terms, init, max_delay)

@@ -272,10 +272,10 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
 
 
 def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict, joint_ids, held, limits, log,
-           learned: dict | None = None) -> dict:
+           held_models: dict, learned: dict | None = None) -> dict:
     """The physics-first diagnosis' result dict (`procedure.run`'s return shape) for the joints `joint_ids`;
-    `learned`: the learned path's result for the other joints (None: physics first decides every joint)."""
-    held_models = checked(phys, base, ref, flat, s, joint_ids, learned_residual(ref, flat), log)
+    `held_models`: rule 6's models (`checked`, run before the learned path); `learned`: the learned path's result
+    for the other joints (None: physics first decides every joint)."""
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]
     if learned is not None and (not accepted or any(e["status"] == "accepted" for e in learned["results"])):
@@ -312,6 +312,8 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
                         torque_unit=torque_unit(flat), joints=list(flat.joints), joint_types=list(flat.joint_types),
                         has_exo=flat.has_exo, has_insole=flat.has_insole,
                         split="held-out time segments (1 in 4, ~2 s) within every trial")}
+    if learned and learned.get("compensated"):
+        rep["data"]["learned_path_compensated_for"] = learned["report"]["data"]["learned_path_compensated_for"]
     return dict(report=rep, flat=flat, base=base, ref=ref, ext_model=ext_model, ro_base=ro_base, ro_ext=ro_ext,
                 results=results)
 

@@ -182,6 +182,11 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     phys_joints = [j for j in joint_ids if adequate and adequate["paths"][flat.joints[j]] == "physics first"]
     learned_joints = [j for j in joint_ids if j not in phys_joints]
     from . import compensate, physics_path
+    # rule 6 (the learned base's check) before the learned path's data are compensated: a term it sets aside must
+    # not be taken out of them
+    held_models = tools.learned_check(phys, raw.base, raw.ref, flat, s, phys_joints,
+                                      physics_path.learned_residual(raw.ref, flat),
+                                      lambda m: log(s, m)) if phys_joints else {}
     held_terms, held_init = physics_path.held_terms(phys, phys_joints) if phys_joints and learned_joints else ([], {})
     if held_terms:      # the learned path tests its joints with physics first's terms taken out of the data
         log(s, "the learned path's data: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in held_terms) +
@@ -205,7 +210,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     limits = (learned["report"]["detection_limits"] if learned else
               all_limits(flat, s, raw.base_start, raw.ref, held, raw.w_held, ss.sigma_r, ss.budget.single()))
     return physics_path.report(flat, s, trials, raw.base, raw.ref, base_source, noise, phys, adequate, phys_joints,
-                               held, limits, lambda m: log(s, m), learned=learned)
+                               held, limits, lambda m: log(s, m), held_models, learned=learned)
 
 
 def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: dict) -> dict:

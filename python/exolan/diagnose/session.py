@@ -33,6 +33,7 @@ class Tools:
     subject_form: Callable = subjects.subject_form      # a subject form proposed from the training rows
     inertia_confused: tuple = refits.INERTIA_CONFUSED   # terms fitted from scratch without the acceleration term
     adequacy: Callable = physics_path.adequacy          # the gate per joint: which path decides each joint's terms
+    learned_check: Callable = physics_path.checked      # rule 6 on physics first's terms, until nothing changes
 
 
 @dataclass
