@@ -90,6 +90,13 @@ def _design(fc: float, dt: float):
     return signal.butter(4, fc, fs=1.0 / dt, output="sos"), int(min(3 * round(1.0 / (fc * dt)), 500))
 
 
+def exo_like(sig: Signals, x: np.ndarray) -> np.ndarray:
+    """x (N,), a signal of the exo torque's kind on the flat's rows, filtered as `signals` filters τ_e and then as
+    a regressor column (`lp`): what a gain's column is when x stands in for τ_e."""
+    sos1, pad1 = _design(min(4 * sig.cutoff, 0.4 / sig.dt), sig.dt)
+    return np.nan_to_num(sig.lp(_filtered(x[:, None], sig.runs, sos1, pad1, sig.dt)[0][:, 0]))
+
+
 def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
     """Two zero-phase Butterworth low-passes (order 4), per trial and finite run. The first, at four times the
     cutoff, only for differentiation: q̇, q̈ (and τ̇_e, τ̈_e) by central differences of the low-passed q (τ_e).
@@ -205,6 +212,7 @@ class Term:
     report: object = None           # (θ, ν) -> reported parameter
     sided: str = "greater"          # the test of θ against its neutral value: greater | two-sided
     pole: float | None = None       # θ where the reported parameter goes to infinity (a monotone map on each side)
+    own_variation: bool = False     # its column is the exo torque itself: asked on the controller's own variation too
 
     def value(self, theta, nu):
         return self.report(theta, nu) if self.report is not None else theta
@@ -259,7 +267,7 @@ TERMS: dict[str, Term] = {t.effect: t for t in [
     Term("coulomb_friction", _coulomb),
     Term("stribeck_friction", _stribeck, grid=_stribeck_grid),
     Term("torque_gain", lambda sig, j, nu, ctx: sig.tau_e[:, j], report=lambda th, nu: 1.0 / (1.0 - th),
-         sided="two-sided", pole=1.0),
+         sided="two-sided", pole=1.0, own_variation=True),
     Term("actuation_delay", _delay_col, grid=_delay_grid, fixed=True,
          dcol=lambda sig, j, nu: _delayed(sig.tau_e_d[:, j], sig, nu)),
     Term("strap_compliance", _strap_col, report=lambda th, nu: 1.0 / th if th > 0 else math.inf, pole=0.0),

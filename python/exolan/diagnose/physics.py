@@ -16,7 +16,8 @@ Rule, in plain words (the report states it):
 3. The held-out check can only remove a term: the model with it must beat the model without it on the held-out
    segments (paired squared errors, block-bootstrap 95 % CI above 0). So can the recordings' check
    (`consistency`): fitted trial by trial, the term's 95 % prediction interval for a new recording must lie on the
-   physical side of no effect — a constant of the joint, not a shape of the base's misfit.
+   physical side of no effect — a constant of the joint, not a shape of the base's misfit. A term whose column is
+   the exo torque (a gain) must also show on the controller's own variation (`own_variation`).
 4. Rivals (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap): an accepted term whose rival, put in its
    place, is significant there (same threshold), sized inside its physical domain with a finite interval (as an
    accepted term must be) and not worse on held-out data (CI of the difference reaching 0) is `ambiguous` with it
@@ -48,24 +49,8 @@ import numpy as np
 from ..runio import jsonable
 from . import consistency, ident, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
-
-Z95 = 1.959963984540054
-
-
-@dataclass
-class TermEstimate:
-    """One (effect, joint) as the parametric identification sizes it."""
-    effect: str
-    joint: str
-    estimate: float
-    ci: list
-    theta: float                # the linear coefficient (ν for a fixed term)
-    se: float
-    p: float
-    nu: float | None = None     # the nonlinear parameter (Stribeck velocity)
-
-    def to_json(self) -> dict:
-        return jsonable(self.__dict__)
+from .estimates import Z95, TermEstimate, ci_text as _ci_text, report_interval, term_estimate  # noqa: F401
+from .flat import exo_copy
 
 
 @dataclass
@@ -108,36 +93,6 @@ class PhysicsResult:
             cross_check={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.cross.items()},
             learned_check={f"{e}:{joints[j]}": v for (e, j), v in self.learned_check.items()},
             tests=self.tests, base=self.base, heldout=self.heldout, seconds=self.seconds))
-
-
-def term_estimate(prob: ident.JointProblem, f: ident.Fit, eff: str, joint: str) -> TermEstimate:
-    t = ident.TERMS[eff]
-    th, se = f.est[eff], f.se[eff]
-    lo, hi = th - Z95 * se, th + Z95 * se
-    if t.fixed:
-        est, ci = th, [max(lo, 0.0), hi]
-    else:
-        est = t.value(th, f.nu.get(eff))
-        ci = report_interval(t, lo, hi, f.nu.get(eff))
-    nu = f.nu.get(eff)
-    return TermEstimate(eff, joint, float(est), [float(ci[0]), float(ci[1])], float(th), float(se),
-                        ident.p_value(eff, th if not t.fixed else th, se), None if nu is None or t.fixed else float(nu))
-
-
-def report_interval(t: ident.Term, lo: float, hi: float, nu) -> list[float]:
-    """θ's interval [lo, hi] in the reported parameter. Where it holds the map's pole (θ at which the reported
-    value is infinite: a gain k = 1/(1 − θ) at θ = 1, a stiffness 1/c at c = 0), the reported interval reaches
-    infinity: its image is two rays, and the one on the estimate's side is unbounded (the data cannot bound the
-    size). Not the two ends sorted, which would give a finite interval that does not even hold the estimate."""
-    ends = [t.value(lo, nu), t.value(hi, nu)]
-    if t.pole is not None and lo <= t.pole <= hi:
-        inside = [v for v in ends if math.isfinite(v) and v > 0]       # the ray in the domain (k > 0)
-        return [float(min(inside)), math.inf] if inside else [-math.inf, math.inf]
-    return sorted(ends)
-
-
-def _ci_text(ci) -> str:
-    return f"[{ci[0]:.4g}, {ci[1]:.4g}]"
 
 
 def _p(prob: ident.JointProblem, f: ident.Fit, eff: str) -> float:
@@ -312,6 +267,11 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
                                               f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
             continue
+        why = own_variation(probs[j], flat, accepted[j], te, alpha) if ident.TERMS[e].own_variation else None
+        if why:
+            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but {why}")
+            log(f"physics: {e} on {flat.joints[j]} rejected: {why}")
+            continue
         accepted[j].append(e)
         cur[j] = f
         if split:           # it enters the later steps' fits split by subject
@@ -330,6 +290,31 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
         res.accepted += [(e, j) for e in accepted[j]]
     res.seconds = time.time() - t0
     return res
+
+
+def own_variation(prob: ident.JointProblem, flat, accepted: list, te: TermEstimate, alpha: float) -> str | None:
+    """Rule 3 (the learned path's own-variation null, `nulls.on_own_variation`) for a term whose column is the exo
+    torque: why it fails, or None. An assistive controller's torque mostly copies the joint torque (`flat.exo_copy`),
+    so such a column also takes whatever misfit of the base follows the joint torque; a real gain error scales the
+    controller's own variation (the rest) as much. Fitted beside the accepted terms with its column made of that
+    variation alone, the term must still be significant (at α: a check that can only remove spends nothing) and
+    on the same side of no effect."""
+    j, key = prob.j, (te.effect, None)
+    whole = prob.col(te.effect, None)
+    own = (flat.tau_e[:, j] - exo_copy(flat, j).tau_e[:, j]).double().numpy()
+    prob._cols[key] = ident.exo_like(prob.sig, own)
+    try:
+        o = term_estimate(prob, prob.fit(accepted + [te.effect]), te.effect, te.joint)
+    finally:
+        prob._cols[key] = whole
+    if o.p > alpha:
+        return (f"on the controller's own variation alone it is not significant ({o.estimate:.4g} {_ci_text(o.ci)}, "
+                f"p {o.p:.2g}): it rests on the copy of the joint torque, which carries the base's misfit too")
+    if o.theta * te.theta < 0:
+        return (f"on the controller's own variation alone it points the other way ({o.estimate:.4g} "
+                f"{_ci_text(o.ci)} against {te.estimate:.4g}): it rests on the copy of the joint torque, which "
+                "carries the base's misfit too")
+    return None
 
 
 def final_fit(res: PhysicsResult, flat, j: int, terms: list, n_boot: int) -> None:
@@ -454,7 +439,9 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                 alt = probs[j].fit(alt_terms)
                 if _p(probs[j], alt, rv) > thr:
                     continue
-                if _inadmissible(rv, term_estimate(probs[j], alt, rv, flat.joints[j])):
+                te = term_estimate(probs[j], alt, rv, flat.joints[j])
+                if _inadmissible(rv, te) or (ident.TERMS[rv].own_variation and own_variation(
+                        probs[j], flat, [x for x in alt_terms if x != rv], te, res.alpha)):
                     continue                # what an accepted term must be, a rival must be too
                 if consistency.across_trials(probs[j], alt, rv, rv in alt.split, flat)["consistent"] is False:
                     continue                # a rival that is no constant of the joint explains nothing physical
