@@ -121,24 +121,39 @@ def test_hac_of_a_subset_is_the_block_of_the_full_sandwich():
     assert np.allclose(coef, full.params[[4, 5]], rtol=1e-8) and np.allclose(se, full.bse[[4, 5]], rtol=1e-6)
 
 
+DT, T_ROWS = 0.005, 8000       # the pendulum benches: 40 s at 200 Hz
+
+
+def _waves(rng):
+    """`wave(n, amplitudes, frequencies)`: a sum of n sines of random amplitude, frequency and phase over the bench."""
+    t = np.arange(T_ROWS) * DT
+    return lambda n, a, f: sum(rng.uniform(*a) * np.sin(2 * np.pi * rng.uniform(*f) * t + rng.uniform(0, 6))
+                               for _ in range(n))
+
+
+def _knee_trial(q, qd, qdd, tau, te):
+    """One recording of a one-joint (knee) bench in the trial shape `prepare` reads."""
+    from types import SimpleNamespace
+    return SimpleNamespace(subject="S", task="bench", name="p", side="", mass=1.0, dt=DT, joints=("knee",),
+                           joint_types=("revolute",), q=q[:, None], qd=qd[:, None], qdd=qdd[:, None],
+                           tau=tau[:, None], tau_e=te[:, None], f_v=np.zeros(len(q)),
+                           cop=np.full((len(q), 2), np.nan), valid=np.ones(len(q), bool))
+
+
 def test_physics_first_sizes_an_actuation_delay_by_variable_projection():
     """A pendulum whose exo torque acts d late (random 15-45 ms): the delay, profiled on its grid with least
     squares inside, comes out within 15 %, and no friction is accepted beside it."""
-    from types import SimpleNamespace
     seed = int(np.random.default_rng().integers(10_000))
     rng = np.random.default_rng(seed)
     d = float(rng.uniform(0.015, 0.045))
-    dt, T = 0.005, 8000
-    t = np.arange(T) * dt
-    q = sum(rng.uniform(0.1, 0.3) * np.sin(2 * np.pi * rng.uniform(0.3, 1.5) * t + rng.uniform(0, 6)) for _ in range(4))
-    qd, qdd = np.gradient(q, dt), np.gradient(np.gradient(q, dt), dt)
+    wave, t = _waves(rng), np.arange(T_ROWS) * DT
+    q = wave(4, (0.1, 0.3), (0.3, 1.5))
+    qd, qdd = np.gradient(q, DT), np.gradient(np.gradient(q, DT), DT)
     tau_phys = 0.3 * qdd + 4.0 * np.sin(q)
-    te = sum(rng.uniform(1, 3) * np.sin(2 * np.pi * rng.uniform(0.5, 3.0) * t + rng.uniform(0, 6)) for _ in range(5))
+    te = wave(5, (1, 3), (0.5, 3.0))
     applied = np.interp(t - d, t, te)
-    tau = tau_phys + te - applied + 0.02 * rng.standard_normal(T)
-    tr = SimpleNamespace(subject="S", task="bench", name="p", side="", mass=1.0, dt=dt, joints=("knee",),
-                         joint_types=("revolute",), q=q[:, None], qd=qd[:, None], qdd=qdd[:, None], tau=tau[:, None],
-                         tau_e=te[:, None], f_v=np.zeros(T), cop=np.full((T, 2), np.nan), valid=np.ones(T, bool))
+    tau = tau_phys + te - applied + 0.02 * rng.standard_normal(T_ROWS)
+    tr = _knee_trial(q, qd, qdd, tau, te)
     res = physics.identify(prepare([tr]), ("viscous_damping", "coulomb_friction", "actuation_delay"), [0])
     msg = f"seed {seed}, d {d}: {res.summary(('knee',))}"
     assert [e for e, _ in res.accepted] == ["actuation_delay"], msg
@@ -148,42 +163,28 @@ def test_physics_first_sizes_an_actuation_delay_by_variable_projection():
 def _strap_pendulum(rng, k: float):
     """A pendulum under an exoskeleton that assists (half its gravity torque, some of its inertial one, and a
     pattern of its own), the encoder on the exo's side of a strap of stiffness k (inf: rigid)."""
-    from types import SimpleNamespace
-    dt, T = 0.005, 8000
-    t = np.arange(T) * dt
-    wave = lambda n, a, f: sum(rng.uniform(*a) * np.sin(2 * np.pi * rng.uniform(*f) * t + rng.uniform(0, 6))
-                               for _ in range(n))
+    wave = _waves(rng)
     q = wave(4, (0.1, 0.3), (0.3, 1.5))
-    qdd = np.gradient(np.gradient(q, dt), dt)
+    qdd = np.gradient(np.gradient(q, DT), DT)
     te = 2.0 * np.sin(q) + 0.1 * qdd + wave(3, (0.5, 1.5), (0.5, 3.0))
-    tau = 0.3 * qdd + 4.0 * np.sin(q) + 0.02 * rng.standard_normal(T)
+    tau = 0.3 * qdd + 4.0 * np.sin(q) + 0.02 * rng.standard_normal(T_ROWS)
     qm = q + te / k
-    qdm = np.gradient(qm, dt)
-    return SimpleNamespace(subject="S", task="bench", name="p", side="", mass=1.0, dt=dt, joints=("knee",),
-                           joint_types=("revolute",), q=qm[:, None], qd=qdm[:, None],
-                           qdd=np.gradient(qdm, dt)[:, None], tau=tau[:, None], tau_e=te[:, None], f_v=np.zeros(T),
-                           cop=np.full((T, 2), np.nan), valid=np.ones(T, bool))
+    qdm = np.gradient(qm, DT)
+    return _knee_trial(qm, qdm, np.gradient(qdm, DT), tau, te)
 
 
 def _gain_pendulum(rng, k: float, misfit: float):
     """A pendulum whose exoskeleton copies the joint torque (half of it, 30 ms late) and adds a pattern of its own
     (the controller's own variation); the exo torque recorded k times as large as applied. `misfit`: a part of the
     joint torque no column of the parametric base holds (sin 8q), which the exo torque copies with the rest."""
-    from types import SimpleNamespace
-    dt, T = 0.005, 8000
-    t = np.arange(T) * dt
-    wave = lambda n, a, f: sum(rng.uniform(*a) * np.sin(2 * np.pi * rng.uniform(*f) * t + rng.uniform(0, 6))
-                               for _ in range(n))
+    wave = _waves(rng)
     q = wave(4, (0.1, 0.3), (0.3, 1.5))
-    qdd = np.gradient(np.gradient(q, dt), dt)
+    qdd = np.gradient(np.gradient(q, DT), DT)
     D = 0.3 * qdd + 4.0 * np.sin(q) + misfit * np.sin(8 * q)
     applied = 0.5 * np.concatenate([np.full(6, D[0]), D[:-6]]) + wave(3, (0.1, 0.3), (0.5, 3.0))
     te = k * applied
-    tau = D + (te - applied) + 0.02 * rng.standard_normal(T)
-    return SimpleNamespace(subject="S", task="bench", name="p", side="", mass=1.0, dt=dt, joints=("knee",),
-                           joint_types=("revolute",), q=q[:, None], qd=np.gradient(q, dt)[:, None], qdd=qdd[:, None],
-                           tau=tau[:, None], tau_e=te[:, None], f_v=np.zeros(T), cop=np.full((T, 2), np.nan),
-                           valid=np.ones(T, bool))
+    tau = D + (te - applied) + 0.02 * rng.standard_normal(T_ROWS)
+    return _knee_trial(q, np.gradient(q, DT), qdd, tau, te)
 
 
 def test_a_gain_must_show_on_the_controllers_own_variation_too():

@@ -38,7 +38,7 @@ def term_estimate(prob: ident.JointProblem, f: ident.Fit, eff: str, joint: str) 
         ci = report_interval(t, lo, hi, f.nu.get(eff))
     nu = f.nu.get(eff)
     return TermEstimate(eff, joint, float(est), [float(ci[0]), float(ci[1])], float(th), float(se),
-                        ident.p_value(eff, th if not t.fixed else th, se), None if nu is None or t.fixed else float(nu))
+                        ident.p_value(eff, th, se), None if nu is None or t.fixed else float(nu))
 
 
 def report_interval(t: ident.Term, lo: float, hi: float, nu) -> list[float]:

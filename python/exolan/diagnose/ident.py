@@ -90,10 +90,15 @@ def _design(fc: float, dt: float):
     return signal.butter(4, fc, fs=1.0 / dt, output="sos"), int(min(3 * round(1.0 / (fc * dt)), 500))
 
 
+def _differentiation_filter(fc: float, dt: float):
+    """`signals`' first low-pass, at four times the cutoff: only for differentiating q and τ_e."""
+    return _design(min(4 * fc, 0.4 / dt), dt)
+
+
 def exo_like(sig: Signals, x: np.ndarray) -> np.ndarray:
     """x (N,), a signal of the exo torque's kind on the flat's rows, filtered as `signals` filters τ_e and then as
     a regressor column (`lp`): what a gain's column is when x stands in for τ_e."""
-    sos1, pad1 = _design(min(4 * sig.cutoff, 0.4 / sig.dt), sig.dt)
+    sos1, pad1 = _differentiation_filter(sig.cutoff, sig.dt)
     return np.nan_to_num(sig.lp(_filtered(x[:, None], sig.runs, sos1, pad1, sig.dt)[0][:, 0]))
 
 
@@ -106,7 +111,7 @@ def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
     would leave a friction-like misfit at every reversal, which a Stribeck term then takes."""
     dt = float(flat.dt)
     fc = min(float(cutoff_hz), 0.4 / dt)
-    sos1, pad1 = _design(min(4 * fc, 0.4 / dt), dt)
+    sos1, pad1 = _differentiation_filter(fc, dt)
     valid = flat.valid.numpy().astype(bool)
     N, n = flat.q.shape
     cols = {k: np.full((N, n), np.nan) for k in ("q", "qd", "qdd", "tau_e", "tau_e_d", "tau_e_dd")}

@@ -50,7 +50,7 @@ from ..runio import jsonable
 from . import consistency, ident, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
 from .estimates import Z95, TermEstimate, ci_text as _ci_text, report_interval, term_estimate  # noqa: F401
-from .flat import exo_copy
+from .flat import exo_own
 
 
 @dataclass
@@ -303,8 +303,7 @@ def own_variation(prob: ident.JointProblem, flat, accepted: list, te: TermEstima
     on the same side of no effect."""
     j, key = prob.j, (te.effect, None)
     whole = prob.col(te.effect, None)
-    own = (flat.tau_e[:, j] - exo_copy(flat, j).tau_e[:, j]).double().numpy()
-    prob._cols[key] = ident.exo_like(prob.sig, own)
+    prob._cols[key] = ident.exo_like(prob.sig, exo_own(flat, j).tau_e[:, j].double().numpy())
     try:
         o = term_estimate(prob, prob.fit(accepted + [te.effect]), te.effect, te.joint)
     finally:
