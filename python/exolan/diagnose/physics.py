@@ -255,21 +255,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
                     f"not significant (p {pe:.3g} > Holm's threshold {thr:.3g} at step {r} of {len(cands)})"))
             break
         pool.remove((e, j))
-        why = _inadmissible(e, te)
-        if why:
-            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but {why}")
-            continue
-        rec["consistency"] = cons = consistency.across_trials(probs[j], f, e, split, flat)
-        if cons["consistent"] is False:
-            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but "
-                                              + consistency.text(cons, te.estimate))
-            log(f"physics: {e} on {flat.joints[j]} rejected: its size changes between recordings")
-            continue
-        if gain["ci"][0] <= 0:
-            res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but no held-out gain: {gain['gain']:.3g} "
-                                              f"[{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]")
-            continue
-        why = own_variation(probs[j], flat, accepted[j], te, alpha) if ident.TERMS[e].own_variation else None
+        why, rec["consistency"] = _objection(probs[j], flat, accepted[j], f, e, te, split, gain, alpha)
         if why:
             res.status[(e, j)] = ("rejected", f"significant (p {p:.3g}) but {why}")
             log(f"physics: {e} on {flat.joints[j]} rejected: {why}")
@@ -292,6 +278,23 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
         res.accepted += [(e, j) for e in accepted[j]]
     res.seconds = time.time() - t0
     return res
+
+
+def _objection(prob: ident.JointProblem, flat, accepted: list, f: ident.Fit, e: str, te: TermEstimate, split: bool,
+               gain: dict, alpha: float) -> tuple[str | None, dict | None]:
+    """Why a significant term cannot be taken (None: it can) and its recordings' check: inside its domain with a
+    bounded size, a constant across recordings, a held-out gain, and (a gain) on the controller's own variation."""
+    why = _inadmissible(e, te)
+    if why:
+        return why, None
+    cons = consistency.across_trials(prob, f, e, split, flat)
+    if cons["consistent"] is False:
+        return consistency.text(cons, te.estimate), cons
+    if gain["ci"][0] <= 0:
+        return f"no held-out gain: {gain['gain']:.3g} [{gain['ci'][0]:.3g}, {gain['ci'][1]:.3g}]", cons
+    if ident.TERMS[e].own_variation:
+        return own_variation(prob, flat, accepted, te, alpha), cons
+    return None, cons
 
 
 def own_variation(prob: ident.JointProblem, flat, accepted: list, te: TermEstimate, alpha: float) -> str | None:
