@@ -80,3 +80,13 @@ def real_data() -> Path:
     if not (p / "subjects.csv").exists():
         pytest.skip(f"real recordings not found at {p} (set EXOLAN_REAL_DATA)")
     return p
+
+
+@pytest.fixture(scope="module")
+def arm():
+    """A simulated two-link arm, two trials of 6 s, prepared for the diagnosis (its building-block tests)."""
+    from exolan.diagnose.flat import prepare
+    from exolan.diagnose.synthetic import two_link
+
+    trials, _ = two_link(n_trials=2, seconds=6.0, seed=3)
+    return prepare(trials)

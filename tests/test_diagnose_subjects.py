@@ -1,0 +1,229 @@
+"""Diagnosis building blocks, subject forms: a term gated to some subjects, a size per subject, their engine files and
+rollouts. Fast (seconds)."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from exolan.diagnose.base import make_base
+from exolan.diagnose.export import extend
+from exolan.diagnose.flat import prepare
+from exolan.diagnose import refits
+from exolan.diagnose.rules import invariance_rule, paired_gain
+from exolan.diagnose.session import Tools
+
+from diagnose_helpers import leg_pair
+
+
+def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it():
+    """An effect of one user only (a knee damping of 2 N m s/rad in S01, none in S02): the post-hoc θ by subject
+    on the training rows differs (Cochran's Q) and only S01's clears its Bonferroni z, so the term is gated to
+    S01's trials. The same damping in both users, or in neither, keeps the pooled term (None)."""
+    from exolan.diagnose.subjects import gated, subject_form
+
+    rng = np.random.default_rng(4)
+    trials = []
+    for subj in ("S01", "S02"):
+        for rep in (1, 2):
+            for t in leg_pair(T=2000, seed=rep + 7 * int(subj[-1])):
+                t.subject, t.name = subj, f"walk_{rep}_1"
+                t.qd = np.convolve(rng.normal(0, 1, 2040), np.hanning(41), "same")[20:-20, None] * [1, 1] / 4
+                trials.append(t)
+    flat = prepare(trials)
+    s01 = torch.as_tensor(np.array([flat.trial_meta[i]["subject"] == "S01" for i in flat.trial.numpy()]))
+
+    residual = {}
+
+    def predict(model, f, idx):
+        return f.tau[idx] - residual["now"][idx]
+
+    def with_residual(b01, b02):
+        resid = torch.zeros_like(flat.tau)
+        resid[:, 1] = torch.where(s01, b01, b02).to(flat.tau.dtype) * flat.qd[:, 1]
+        resid += torch.as_tensor(rng.normal(0, 0.05, resid.shape), dtype=resid.dtype) * flat.mass[:, None]
+        residual["now"] = resid
+
+    with_residual(2.0, 0.0)
+    form = subject_form(None, flat, "viscous_damping", 1, {}, predict=predict)
+    assert form is not None and form["subjects"] == ["S01"]
+    assert form["theta_by_subject"]["S01"]["theta"] == pytest.approx(2.0, rel=0.05)
+    assert form["heterogeneity"]["p"] < 1e-6
+    on = np.array([m["subject"] == "S01" for m in flat.trial_meta], dtype=float)
+    np.testing.assert_array_equal(form["trials"], on)
+    # the gate reaches the model through the init of every fit (`subjects.gated`), and only for this candidate's joint
+    init = gated({"viscous_damping": 1.0}, form, "viscous_damping", 1)
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)], init=init)
+    assert ext.gated == ("viscous_damping",)
+    np.testing.assert_array_equal(ext.gate_trials()["viscous_damping"][1], on)
+    assert gated({"x": 1}, None, "viscous_damping", 1) == {"x": 1}
+    # a damping is linear in its parameter: the same data also propose every subject at their own size
+    assert form["users"] == ["S01", "S02"]
+    np.testing.assert_array_equal(form["subject_of_trial"], [0 if m["subject"] == "S01" else 1 for m in flat.trial_meta])
+    # both subjects with a damping of different sizes: no switch, only the sizes
+    with_residual(2.0, 0.8)
+    form = subject_form(None, flat, "viscous_damping", 1, {}, predict=predict)
+    assert "subjects" not in form and form["users"] == ["S01", "S02"]
+    sized = dict(form, kind="sizes", log_sizes=[0.45, -0.45])
+    init = gated({"viscous_damping": 1.0}, sized, "viscous_damping", 1)
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)], init=init)
+    assert ext.sized == ("viscous_damping",) and not ext.switched
+    np.testing.assert_allclose(ext.size_values()["viscous_damping"][1], [0.45, -0.45], atol=1e-12)
+    for b01, b02 in ((2.0, 2.0), (0.0, 0.0)):
+        with_residual(b01, b02)
+        assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None, (b01, b02)
+    # a residual asking for negative damping in S01: no physical term to gate
+    with_residual(-2.0, 0.0)
+    assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None
+    # recordings whose "subject" is their file's name (layout 2 without one) are not users: no gate
+    with_residual(2.0, 0.0)
+    for m in flat.trial_meta:
+        m["name"] = m["subject"]
+    assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None
+
+
+def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path):
+    """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
+    term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
+    and compared there; the sizes start equal. The form taken is the extended model's fit (no third fit from
+    scratch), its estimates held in the model handed over, and the report says how the forms were compared.
+    Rules forced open: the sizes win; then the switch wins where the sizes' fit from scratch does not beat it, and
+    where it does but fails rule 5 against it."""
+    from exolan.diagnose import diagnose
+    from exolan.diagnose.synthetic import linear_drive
+
+    trials = []
+    for subj, visc, seed in (("S01", 2.0, 5), ("S02", 8.0, 6)):
+        tr, _ = linear_drive(n_trials=2, seconds=4.0, seed=seed, viscous=visc)
+        for k, t in enumerate(tr):
+            t.subject, t.name = subj, f"{subj.lower()}_drive_{k}"
+        trials += tr
+
+    def both_forms(model, flat, effect, j, sc):     # the proposal: S02 alone, or every subject at their size
+        users = ["S01", "S02"]
+        return dict(theta_by_subject={u: dict(theta=1.0 + i, se=0.1) for i, u in enumerate(users)},
+                    heterogeneity=dict(Q=50.0, df=1, p=1e-12), z_crit=2.24, subjects=["S02"],
+                    trials=np.array([float(m["subject"] == "S02") for m in flat.trial_meta]), users=users,
+                    subject_of_trial=np.array([users.index(m["subject"]) for m in flat.trial_meta]))
+
+    n = {}
+
+    def rule5(*a, **k):     # open, but for the sizes-against-switch comparison where `n["fail_next"]` says so
+        fail, n["fail_next"] = n.get("fail_next", False), False
+        return dict(invariance_rule(*a, **k), passes=not fail)
+
+    fits = []
+
+    def recorded(flat, s, effects, init, start, confused=None):
+        m = refits.fresh_fit(flat, s, effects, init, start, confused=confused)
+        if effects:                 # not the term-free twins of the noise between optima
+            fits.append((init, m))
+        return m
+
+
+    def run(out, sizes_win: bool, task_bound: bool = False):
+        fits.clear()
+        n["fresh"] = 0
+
+        def gain(e_ref, e_new, s, seed=0, alpha=0.05):
+            g = paired_gain(e_ref, e_new, s, seed=seed, alpha=alpha)
+            # the comparison of the two fits from scratch: sizes against switch
+            if len(fits) == 2 and n["fresh"] == 0:
+                n["fresh"] += 1
+                n["fail_next"] = task_bound         # its rule 5 comes next
+                g = dict(g, forced=True) if sizes_win else dict(g, draws=None)
+            return g
+
+        tools = Tools(subject_form=both_forms, user_improves=lambda before, after: True, invariance=rule5,
+                      fresh_fit=recorded, gain=gain,
+                      above_noise=lambda g, sigma, seed=0, alpha=0.05: g.get("draws", 0) is not None)
+        return diagnose(trials, out=out, quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
+                        effects=("viscous_damping",), verbose=False, tools=tools)
+
+    rep = run(tmp_path / "a", sizes_win=True)
+    assert len(fits) == 2                       # the two forms; the taken one is the extended model
+    sw_init, sz_init = fits[0][0], fits[1][0]
+    assert "gates" in sw_init and "sized" not in sw_init
+    assert sz_init["sized"]["viscous_damping"][0] is None and "gates" not in sz_init
+    (f,) = rep["findings"]
+    assert f["subject_form"]["kind"] == "sizes"
+    assert f["subject_form"]["advantage_over_switch"]["fitted"] == "from scratch"
+    assert len(f["subject_form"]["log_sizes_from_scratch"]) == 2
+    # handed over by step 7's first look: the reference's refit with the terms held at that fit's estimates
+    assert rep["extended"]["model"].startswith("the reference's refit with the terms held")
+    assert rep["extended"]["parameters"]["viscous_damping:x"] == fits[1][1].estimate("viscous_damping", 0)
+    assert set(f["estimate_by_subject"]) == {"S01", "S02"}
+    assert "(both fitted from scratch)" in (tmp_path / "a" / "diagnosis.md").read_text()
+
+    rep = run(tmp_path / "b", sizes_win=False)
+    assert len(fits) == 2
+    (f,) = rep["findings"]
+    assert f["subject_form"]["kind"] == "switch" and f["subjects"] == ["S02"]
+    over = f["subject_form"]["sizes_advantage_over_switch"]
+    assert over["fitted"] == "from scratch" and len(over["log_sizes"]) == 2
+    assert rep["extended"]["parameters"]["viscous_damping:x"] == fits[0][1].estimate("viscous_damping", 0)
+    assert "did not beat this term beyond the refit noise" in (tmp_path / "b" / "diagnosis.md").read_text()
+
+    # the sizes beat the switch beyond the refit noise, but their addition fails rule 5: the switch is taken
+    rep = run(tmp_path / "c", sizes_win=True, task_bound=True)
+    (f,) = rep["findings"]
+    assert f["subject_form"]["kind"] == "switch" and f["subjects"] == ["S02"]
+    assert not f["subject_form"]["sizes_advantage_over_switch"]["task_invariance"]["passes"]
+
+
+def test_a_sized_terms_value_by_subject_is_its_subjects_own():
+    """`inference.param_by_subject`: θ_u = θ e^{a_u} of a sized term for each subject, with an interval from that subject's
+    training rows that holds it when the recorded torque is the model's own (plus noise); a stiffness is
+    reported as k."""
+    from exolan.diagnose.fit import predict
+    from exolan.diagnose.inference import param_by_subject
+
+    trials = []
+    for subj in ("S01", "S02"):
+        for t in leg_pair(T=1500, seed=int(subj[-1])):
+            t.subject, t.name = subj, "walk_1_1"
+            trials.append(t)
+    flat = prepare(trials)
+    sub = [0 if m["subject"] == "S01" else 1 for m in flat.trial_meta]
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1)],
+                 init={"viscous_damping": 1.5, "sized": {"viscous_damping": {1: [0.3, -0.3]}}, "subject_of_trial": sub})
+    rng = np.random.default_rng(0)
+    with torch.no_grad():
+        tau = predict(ext, flat, torch.arange(flat.q.shape[0]))
+    flat.tau = tau + torch.as_tensor(rng.normal(0, 0.02, tau.shape), dtype=tau.dtype) * flat.mass[:, None]
+    by = param_by_subject(ext, flat, "viscous_damping", 1, ["S01", "S02"])
+    for u, a in (("S01", 0.3), ("S02", -0.3)):
+        assert by[u]["estimate"] == pytest.approx(1.5 * math.exp(a), rel=1e-6)
+        assert by[u]["size"] == pytest.approx(math.exp(a), rel=1e-6)     # float32 models
+        lo, hi = by[u]["ci"]
+        assert lo < by[u]["estimate"] < hi and hi - lo < 0.2 * by[u]["estimate"]
+
+
+def test_an_extended_models_files_name_the_subjects_of_its_gated_terms():
+    """The weight files hold a subject-specific term's value for every user (the engine has no gates): their
+    metadata says which users it belongs to."""
+    from exolan.diagnose import _subject_terms
+
+    flat = prepare(leg_pair(T=200))
+    flat.trial_meta = [dict(subject="S01"), dict(subject="S02")]
+    ext = extend(make_base(flat, hidden=8), flat, [("viscous_damping", 1), ("coulomb_friction", 0)],
+                 init={"gates": {"viscous_damping": {1: [0.0, 1.0]}}})
+    assert _subject_terms(ext, flat) == "viscous_damping:knee -> S02"
+
+
+def test_rollouts_of_a_gated_term_follow_each_starts_trial():
+    """Open-loop rollouts (`residuals.rollout_errors`) integrate a subject-specific term only from the starts in
+    its own trials: there the errors are the ungated model's, elsewhere the base model's."""
+    from exolan.diagnose.residuals import rollout_errors
+
+    flat = prepare(leg_pair(T=300))
+    base = make_base(flat, hidden=8)
+    T = 300
+    starts = torch.tensor([10, 50, 120, T + 10, T + 50, T + 120])
+    whole = extend(base, flat, [("viscous_damping", 1)], init={"viscous_damping": 3.0})
+    gated = extend(base, flat, [("viscous_damping", 1)], init={"viscous_damping": 3.0,
+                                                                "gates": {"viscous_damping": {1: [0.0, 1.0]}}})
+    e_g, e_w, e_b = (rollout_errors(m, flat, starts, horizon=8)["q_per_start"] for m in (gated, whole, base))
+    np.testing.assert_allclose(e_g[:3], e_b[:3], rtol=1e-9)      # trial 0: the term is off
+    np.testing.assert_allclose(e_g[3:], e_w[3:], rtol=1e-9)      # trial 1: on
+    assert not np.allclose(e_w[:3], e_b[:3])
