@@ -144,19 +144,37 @@ def test_a_term_the_learned_base_loses_by_holding_is_ambiguous_and_one_it_does_n
         assert verdict(ci)["status"] == "accepted"
 
 
-def test_physics_first_terms_are_held_in_the_learned_base_and_a_single_ones_model_is_the_extended_model(arm, tmp_path):
+def test_physics_first_terms_are_held_in_the_learned_base_and_the_extended_model_never_saw_them(arm, tmp_path):
+    """Rule 6 holds the accepted damping in the learned base; the extended model is fitted apart, from the base's
+    start on the data without the damping (taken out at its physical size), the damping put back at that size: it
+    gains on held-out data, and it is not rule 6's model."""
+    from exolan.diagnose import compensate
+
+    calls = []
+
+    def fit_without(flat, s, start, terms, init):
+        calls.append((terms, init))
+        m = compensate.fitted_without(flat, s, start, terms, init)
+        calls.append(m)
+        return m
+
     rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False,
-                   tools=Tools(adequacy=_gate(dict(shoulder=True, elbow=True), [])))
+                   tools=Tools(adequacy=_gate(dict(shoulder=True, elbow=True), []), fit_without=fit_without))
     ph = rep["physics"]
     assert ph["accepted"], "the arm's elbow damping (2.0) is found by physics first"
     assert set(ph["learned_check"]) == set(ph["accepted"])
     md = (tmp_path / "diagnosis.md").read_text()
     assert "held at this size in the learned base, held-out gain" in md
     assert [(f["effect"], f["joint"]) for f in rep["findings"]] == [("viscous_damping", "elbow")]
-    # the damping held at its size gains in the learned base; that model is handed over, not fitted again
-    v = ph["learned_check"]["viscous_damping:elbow"]
-    assert v["ci"][0] > 0 and rep["extended"]["heldout_gain"] == pytest.approx(v["gain"], rel=1e-12)
+    (terms, init), model = calls
+    size = ph["estimates"]["viscous_damping:elbow"]["estimate"]
+    assert terms == [("viscous_damping", 1)] and init["viscous_damping"][1] == pytest.approx(size)
+    ext = rep["extended"]
+    assert ext["terms"] == ["viscous_damping:elbow"] and "without the terms" in ext["model"]
+    assert ext["parameters"]["viscous_damping:elbow"] == pytest.approx(size, rel=1e-6)
+    assert ext["heldout_gain_ci"][0] > 0
+    assert ext["heldout_gain"] != pytest.approx(ph["learned_check"]["viscous_damping:elbow"]["gain"], rel=1e-6)
 
 
 def test_with_several_terms_each_is_checked_by_its_own_share_beside_the_others():

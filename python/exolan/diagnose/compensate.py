@@ -16,7 +16,10 @@ from dataclasses import replace
 import torch
 
 from ..extensions import ExtendedModel
+from .fit import misfit_weights, train
 from .flat import Flat
+from .refits import refit
+from .settings import Settings, heartbeat
 
 # the raw parameters `ExtendedModel` learns for each term (per joint: one entry of each vector)
 RAW = {"viscous_damping": ("damping_diag",), "coulomb_friction": ("coulomb_raw",),
@@ -98,3 +101,18 @@ def results_on_raw(learned: dict, flat: Flat, terms: list, init: dict, max_delay
     if learned.get("ext_model") is not None and isinstance(ext, dict):
         ext["held_from_physics_first"] = [f"{e}:{flat.joints[j]}" for e, j in terms]
     return out
+
+
+def fitted_without(flat: Flat, s: Settings, start: torch.nn.Module, terms: list, init: dict) -> ExtendedModel:
+    """The base's recipe (`procedure.fit_base`: its steps and seed from `start`, the misfit weights, the reference's
+    refit) on the data with `terms` removed at their sizes, and the terms put back (`on_raw`). Networks that never
+    saw the terms cannot imitate them: a warm refit of a base that already imitates a term keeps most of that
+    imitation and so doubles the term (docs/DIAGNOSIS.md, "The extended model of physics first")."""
+    fc = data(flat, terms, init, s.max_delay)
+    m = copy.deepcopy(start)
+    train(m, fc, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
+          progress=heartbeat(s, "extended model: the base fitted without its terms", s.steps_base))
+    if s.weighted:
+        fc.weight = misfit_weights(m, fc)
+    refit(m, fc, s)
+    return on_raw(m, flat, terms, init, s.max_delay)

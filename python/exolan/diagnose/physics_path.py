@@ -37,7 +37,9 @@ RULE = ("Physics first: every candidate term was fitted jointly with a parametri
         "or one of the other sign, it is ambiguous. Last, the terms are held at their sizes in the learned base, "
         "whose networks are refitted as the reference's: where that base is worse on held-out data with a term "
         "than without it (beside the other accepted terms), the term carries what the parametric base misfits "
-        "and is ambiguous.")
+        "and is ambiguous. The extended model is the learned base fitted from its start on the data with the "
+        "accepted terms taken out at their sizes, the terms put back: networks that never saw a term cannot "
+        "imitate it.")
 
 
 def adequacy(e_param: dict[int, np.ndarray], ref, flat, joint_ids, n_boot: int, what: str = "") -> dict:
@@ -272,10 +274,12 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
 
 
 def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict, joint_ids, held, limits, log,
-           held_models: dict, learned: dict | None = None) -> dict:
+           held_models: dict, learned: dict | None = None, fit_without=None) -> dict:
     """The physics-first diagnosis' result dict (`procedure.run`'s return shape) for the joints `joint_ids`;
     `held_models`: rule 6's models (`checked`, run before the learned path); `learned`: the learned path's result
-    for the other joints (None: physics first decides every joint)."""
+    for the other joints (None: physics first decides every joint); `fit_without` (terms, init -> model): the
+    extended model fitted from the base's start on the data without its terms (`compensate.fitted_without`; None
+    where the base was given as is: rule 6's warm refit stands in)."""
     results = entries(phys, flat, s, joint_ids)
     accepted = [(e["effect"], flat.joints.index(e["joint"])) for e in results if e["status"] == "accepted"]
     if learned is not None and (not accepted or any(e["status"] == "accepted" for e in learned["results"])):
@@ -294,7 +298,7 @@ def report(flat, s, trials, base, ref, base_source, noise, phys, adequate: dict,
     ext_model, ro_ext, extended = None, None, None
     if accepted:
         ext_model, extended, ro_ext = _extended(base, ref, flat, s, accepted, phys, held, starts, ro_base, log,
-                                                ready=held_models.get(frozenset(accepted)))
+                                                ready=held_models.get(frozenset(accepted)), fit_without=fit_without)
         if extended["heldout_gain_ci"][1] <= 0:
             for e in results:
                 if e["status"] == "accepted":
@@ -340,21 +344,31 @@ def beside(learned: dict, results: list, phys: physics.PhysicsResult, flat, adeq
     return learned
 
 
-def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, log, ready=None):
-    """The extended model with the accepted terms at their physical sizes, its held-out and rollout gains;
-    `ready`: that model already fitted (one of rule 6's)."""
+def _extended(base, ref, flat, s, accepted: list, phys, held, starts, ro_base, log, ready=None, fit_without=None):
+    """The extended model with the accepted terms at their physical sizes, its held-out and rollout gains. Where
+    the base was fitted here (`fit_without`), its networks are fitted from the base's start on the data without the
+    terms: a warm refit of the reference keeps most of what it learned to imitate of them (a knee damping: +15 % at
+    the reference's 400 refit steps, +51 % fitted without it; docs/DIAGNOSIS.md). Else `ready` (one of rule 6's
+    warm refits) or that refit made here."""
     from .limits import torque_unit
     from .refits import metrics as _metrics, refit_terms_frozen as _refit_terms_frozen
     from .rules import paired_gain as _gain
 
-    log(f"extended model: the learned base with {', '.join(f'{a}:{flat.joints[j]}' for a, j in accepted)} held at "
-        f"their physical sizes, its networks refitted")
-    ext_model = ready if ready is not None else extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
+    terms = ', '.join(f'{a}:{flat.joints[j]}' for a, j in accepted)
+    if fit_without is not None:
+        log(f"extended model: the base's networks fitted from its start on the data without {terms} (taken out at "
+            "their physical sizes), the terms put back")
+        ext_model = fit_without(accepted, term_init(phys, accepted))
+        how = ("the base's recipe from its start on the data without the terms (removed at the parametric base's "
+               "estimates), the terms put back at those sizes")
+    else:
+        log(f"extended model: the learned base with {terms} held at their physical sizes, its networks refitted")
+        ext_model = ready if ready is not None else extended_model(base, flat, s, accepted, phys, _refit_terms_frozen)
+        how = "the reference's refit with the terms held at the parametric base's estimates"
     e_ref, e_ext = sq_errors(ref, flat, held), sq_errors(ext_model, flat, held)
     g = _gain(e_ref.sum(1), e_ext.sum(1), s)
     extended, ro_ext = _metrics(ext_model, flat, s, starts)
-    extended.update(terms=[f"{a}:{flat.joints[j]}" for a, j in accepted],
-                    model="the reference's refit with the terms held at the parametric base's estimates",
+    extended.update(terms=[f"{a}:{flat.joints[j]}" for a, j in accepted], model=how,
                     heldout_gain=g["gain"], heldout_gain_ci=g["ci"], relative_gain=g["rel"],
                     relative_gain_ci=g["rel_ci"],
                     parameters={f"{a}:{flat.joints[j]}": ext_model.estimate(a, j) for a, j in accepted})

@@ -210,7 +210,9 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     limits = (learned["report"]["detection_limits"] if learned else
               all_limits(flat, s, raw.base_start, raw.ref, held, raw.w_held, ss.sigma_r, ss.budget.single()))
     return physics_path.report(flat, s, trials, raw.base, raw.ref, base_source, noise, phys, adequate, phys_joints,
-                               held, limits, lambda m: log(s, m), held_models, learned=learned)
+                               held, limits, lambda m: log(s, m), held_models, learned=learned,
+                               fit_without=None if raw.base_start is None else
+                               lambda terms, init: tools.fit_without(flat, s, raw.base_start, terms, init))
 
 
 def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: dict) -> dict:

@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import inference, physics_path, refits, rules, secondlook, subjects
+from . import compensate, inference, physics_path, refits, rules, secondlook, subjects
 from .candidates import LIBRARY
 from .flat import Flat
 from .settings import Budget, Settings, log
@@ -34,6 +34,7 @@ class Tools:
     inertia_confused: tuple = refits.INERTIA_CONFUSED   # terms fitted from scratch without the acceleration term
     adequacy: Callable = physics_path.adequacy          # the gate per joint: which path decides each joint's terms
     learned_check: Callable = physics_path.checked      # rule 6 on physics first's terms, until nothing changes
+    fit_without: Callable = compensate.fitted_without   # physics first's extended model: fitted without its terms
 
 
 @dataclass
