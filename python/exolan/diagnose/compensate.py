@@ -16,10 +16,10 @@ from dataclasses import replace
 import torch
 
 from ..extensions import ExtendedModel
-from .fit import misfit_weights, train
+from .fit import misfit_weights
 from .flat import Flat
-from .refits import refit
-from .settings import Settings, heartbeat
+from .refits import base_fit, refit
+from .settings import Settings
 
 # the raw parameters `ExtendedModel` learns for each term (per joint: one entry of each vector)
 RAW = {"viscous_damping": ("damping_diag",), "coulomb_friction": ("coulomb_raw",),
@@ -110,8 +110,7 @@ def fitted_without(flat: Flat, s: Settings, start: torch.nn.Module, terms: list,
     imitation and so doubles the term (docs/DIAGNOSIS.md, "The extended model of physics first")."""
     fc = data(flat, terms, init, s.max_delay)
     m = copy.deepcopy(start)
-    train(m, fc, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
-          progress=heartbeat(s, "extended model: the base fitted without its terms", s.steps_base))
+    base_fit(m, fc, s, "extended model: the base fitted without its terms")
     if s.weighted:
         fc.weight = misfit_weights(m, fc)
     refit(m, fc, s)

@@ -18,11 +18,11 @@ from .candidates import LIBRARY
 from .export import extend
 from .fit import misfit_weights, predict, train
 from .flat import Flat, exo_copy
-from .refits import held_errors, refit
+from .refits import base_fit, held_errors, refit
 from .rules import above_noise, own_variation_passes, paired_gain
 from .nulls import on_own_variation
 from .screen import screen
-from .settings import Settings, heartbeat, log
+from .settings import Settings, log
 
 
 def torque_unit(flat: Flat) -> str:
@@ -198,8 +198,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
             inj.tau[:, j] += LIBRARY[eff].injected(te, v, flat.lengths, flat.dt)
         inj.weight = None
         base_i = copy.deepcopy(base_start)
-        fits.train(base_i, inj, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
-                   progress=heartbeat(s, "detection limit by injection: base fit", s.steps_base))
+        base_fit(base_i, inj, s, "detection limit by injection: base fit", trainer=fits.train)
         if s.weighted:
             inj.weight = misfit_weights(base_i, inj)
         w = inj.weight[held].numpy().astype(np.float64) if s.decide_weighted and inj.weight is not None else None

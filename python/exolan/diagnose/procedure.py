@@ -14,14 +14,14 @@ from . import extended, nulls, selection, single
 from . import residuals as R
 from .candidates import LIBRARY
 from .base import make_base
-from .fit import misfit_weights, train
+from .fit import misfit_weights
 from .flat import prepare, sample_groups
 from .limits import all_limits, torque_unit
-from .refits import FitCache, metrics, refit
+from .refits import FitCache, base_fit, metrics, refit
 from .results import public, strip
 from .rules import paired_gain
 from .session import Session, Tools
-from .settings import Budget, Settings, heartbeat, log, step
+from .settings import Budget, Settings, log, step
 from .workers import Workers
 
 __all__ = ["Settings", "Tools", "load_trials", "run"]
@@ -64,8 +64,7 @@ def fit_base(flat, s: Settings, model):
                                                      lim_cop=s.lim_cop)
     base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
     if base_start is not None:
-        train(base, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
-              progress=heartbeat(s, "base fit", s.steps_base))
+        base_fit(base, flat, s)
     log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
         flat.weight = misfit_weights(base, flat)
