@@ -21,14 +21,15 @@ def _gate(verdict: dict, calls: list):
 
 
 @pytest.fixture(scope="module")
-def arm():
+def damped_arm():
+    """The two-link arm with an elbow damping of 2.0 (raw trials; conftest's `arm` is the undamped one, prepared)."""
     trials, _ = two_link(n_trials=2, seconds=6.0, seed=3, damping=(1, 2.0))
     return trials
 
 
-def _run(arm, tmp_path, verdict):
+def _run(damped_arm, tmp_path, verdict):
     calls = []
-    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+    rep = diagnose(damped_arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False, tools=Tools(adequacy=_gate(verdict, calls)))
     entries = [e for e in rep["findings"] + rep["rejected"] if e["effect"] in EFFECTS]
     # a learned-path entry carries its post-hoc screen; a physics-first entry never does
@@ -38,8 +39,8 @@ def _run(arm, tmp_path, verdict):
 
 @pytest.mark.parametrize("verdict", [dict(shoulder=False, elbow=True), dict(shoulder=True, elbow=True),
                                      dict(shoulder=False, elbow=False)])
-def test_each_joints_candidates_are_decided_by_the_path_its_own_gate_chose(arm, tmp_path, verdict):
-    rep, by, calls = _run(arm, tmp_path, verdict)
+def test_each_joints_candidates_are_decided_by_the_path_its_own_gate_chose(damped_arm, tmp_path, verdict):
+    rep, by, calls = _run(damped_arm, tmp_path, verdict)
     want = {nm: "physics first" if ok else "learned" for nm, ok in verdict.items()}
     assert by == {(e, nm): want[nm] for e in EFFECTS for nm in verdict}
     ph = rep["physics"]
@@ -84,7 +85,7 @@ def test_where_both_paths_accept_the_learned_paths_model_is_handed_over_and_the_
     assert out["report"]["physics"]["path"] == "per joint"
 
 
-def test_a_joint_that_fails_its_second_gate_leaves_the_selection_which_runs_again_without_it(arm, tmp_path):
+def test_a_joint_that_fails_its_second_gate_leaves_the_selection_which_runs_again_without_it(damped_arm, tmp_path):
     """Both joints pass the gate of the saturated family, the elbow fails the gate with the accepted terms: the
     selection runs again on the shoulder alone, so no elbow acceptance counts in the shoulder's Holm thresholds,
     and the report shows the elbow decided by the learned path with the numbers of the gate it failed."""
@@ -94,7 +95,7 @@ def test_a_joint_that_fails_its_second_gate_leaves_the_selection_which_runs_agai
     def gate(e_param, ref, flat, joint_ids, n_boot, what=""):
         return _gate(next(verdicts), calls)(e_param, ref, flat, joint_ids, n_boot, what)
 
-    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+    rep = diagnose(damped_arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False, tools=Tools(adequacy=gate))
     assert [c[0] for c in calls] == [["shoulder", "elbow"], ["shoulder", "elbow"], ["shoulder"]]
     ph = rep["physics"]
@@ -108,13 +109,13 @@ def test_a_joint_that_fails_its_second_gate_leaves_the_selection_which_runs_agai
     assert all("screen" in entries[(e, "elbow")] for e in EFFECTS)     # decided on the learned path
 
 
-def test_where_every_joint_fails_its_second_gate_physics_first_reports_nothing(arm, tmp_path):
+def test_where_every_joint_fails_its_second_gate_physics_first_reports_nothing(damped_arm, tmp_path):
     calls, verdicts = [], iter([dict(shoulder=True, elbow=True), dict(shoulder=False, elbow=False)])
 
     def gate(e_param, ref, flat, joint_ids, n_boot, what=""):
         return _gate(next(verdicts), calls)(e_param, ref, flat, joint_ids, n_boot, what)
 
-    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+    rep = diagnose(damped_arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False, tools=Tools(adequacy=gate))
     assert [c[0] for c in calls] == [["shoulder", "elbow"], ["shoulder", "elbow"]]
     ph = rep["physics"]
@@ -144,7 +145,7 @@ def test_a_term_the_learned_base_loses_by_holding_is_ambiguous_and_one_it_does_n
         assert verdict(ci)["status"] == "accepted"
 
 
-def test_physics_first_terms_are_held_in_the_learned_base_and_the_extended_model_never_saw_them(arm, tmp_path):
+def test_physics_first_terms_are_held_in_the_learned_base_and_the_extended_model_never_saw_them(damped_arm, tmp_path):
     """Rule 6 holds the accepted damping in the learned base; the extended model is fitted apart, from the base's
     start on the data without the damping (taken out at its physical size), the damping put back at that size: it
     gains on held-out data, and it is not rule 6's model."""
@@ -158,7 +159,7 @@ def test_physics_first_terms_are_held_in_the_learned_base_and_the_extended_model
         calls.append(m)
         return m
 
-    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+    rep = diagnose(damped_arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False,
                    tools=Tools(adequacy=_gate(dict(shoulder=True, elbow=True), []), fit_without=fit_without))
     ph = rep["physics"]
@@ -237,7 +238,7 @@ def test_a_term_the_learned_residual_shows_with_the_other_sign_is_ambiguous():
     assert same["status"] == "accepted" and same["ci"] == [1.2, 4.7]
 
 
-def test_a_term_rule_6_sets_aside_is_not_taken_out_of_the_learned_paths_data(arm, tmp_path):
+def test_a_term_rule_6_sets_aside_is_not_taken_out_of_the_learned_paths_data(damped_arm, tmp_path):
     """Physics first decides the elbow (its damping, 2.0, accepted by the selection), the learned path the shoulder.
     Rule 6 (a stub: the learned base loses by holding the damping) sets the damping aside; it runs before the
     learned path's data are compensated, so they keep the damping (before, rule 6 ran after the learned path and
@@ -253,7 +254,7 @@ def test_a_term_rule_6_sets_aside_is_not_taken_out_of_the_learned_paths_data(arm
         physics_checks.settle(phys, flat, residual, joint_ids, n_boot=200, log=log)
         return {}
 
-    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+    rep = diagnose(damped_arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False,
                    tools=Tools(adequacy=_gate(dict(shoulder=False, elbow=True), []), learned_check=rule6))
     assert seen and "viscous_damping:elbow" in seen[0], "the arm's elbow damping is accepted by the selection"
@@ -263,8 +264,8 @@ def test_a_term_rule_6_sets_aside_is_not_taken_out_of_the_learned_paths_data(arm
     assert "learned_path_compensated_for" not in rep["data"]
 
 
-def test_the_learned_paths_data_are_compensated_for_the_terms_rule_6_keeps(arm, tmp_path):
-    rep = diagnose(arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
+def test_the_learned_paths_data_are_compensated_for_the_terms_rule_6_keeps(damped_arm, tmp_path):
+    rep = diagnose(damped_arm, out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60, effects=EFFECTS,
                    rescue=False, n_twins=1, verbose=False,
                    tools=Tools(adequacy=_gate(dict(shoulder=False, elbow=True), [])))
     assert rep["data"]["learned_path_compensated_for"] == ["viscous_damping:elbow"]
