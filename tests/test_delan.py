@@ -4,7 +4,6 @@ The oracle builds the Lagrangian ℒ(q, q̇) = ½ q̇ᵀ H(q) q̇ − V(q) from 
 exolan.delan's Jacobian code, and gets τ from the Euler-Lagrange equation
 τ = ∂²ℒ/∂q̇² q̈ + ∂²ℒ/∂q̇∂q q̇ − ∂ℒ/∂q with torch.func.
 """
-import math
 
 import pytest
 import torch

@@ -10,7 +10,6 @@ Every hidden-effect world (knee damping, hip Coulomb, exo delay, strap, encoder 
 import json
 import math
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest

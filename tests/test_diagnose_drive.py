@@ -20,7 +20,6 @@ from exolan.diagnose import physics, physics_checks, wls
 from exolan.diagnose.candidates import FITTED
 from exolan.diagnose.flat import prepare
 from exolan.diagnose.synthetic import servo_drive, servo_trial, write_layout2
-from exolan.data import load
 
 CLI = "import sys; from exolan.cli import main; sys.exit(main(sys.argv[1:]))"
 
@@ -110,7 +109,6 @@ def test_hac_of_a_subset_is_the_block_of_the_full_sandwich():
     """Frisch-Waugh-Lovell: partialling the other columns out gives the same coefficients and HAC SEs as the
     full regression's (statsmodels on all columns)."""
     import statsmodels.api as sm
-    from exolan.diagnose import ident
     rng = np.random.default_rng(int(np.random.default_rng().integers(10_000)))
     N = 3000
     X = np.column_stack([np.ones(N), rng.standard_normal((N, 4)).cumsum(0) / 30, rng.standard_normal(N)])

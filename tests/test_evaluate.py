@@ -7,7 +7,7 @@ import torch
 from exolan.data import context_features, load, paper_split
 from exolan.evaluate import evaluate, physics_check, predict_torque
 from exolan.models import build_model
-from exolan.rollout import euler_step, free_rollout, rollout
+from exolan.rollout import free_rollout, rollout
 from exolan.train import compute_stats, data_scales
 
 

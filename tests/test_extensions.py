@@ -119,7 +119,7 @@ def test_fractional_delay_is_linear_interpolation_of_the_history():
     lag = torch.as_tensor(lag_table([T], 11))
     hist = torch.as_tensor(tau_e)[lag]                     # (T, 12, 2)
     app, _, _ = ext.applied_exo(hist)
-    s = 0.0125 / dt                                        # 2.5 samples
+    # a delay of 0.0125 s is 2.5 samples: half of each neighbour
     want = 0.5 * tau_e[np.maximum(np.arange(T) - 2, 0), 1] + 0.5 * tau_e[np.maximum(np.arange(T) - 3, 0), 1]
     assert np.allclose(app[:, 1].detach().numpy(), want, atol=1e-9)
     assert np.allclose(app[:, 0].detach().numpy(), tau_e[:, 0])     # no delay on joint 0

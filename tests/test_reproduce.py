@@ -128,7 +128,7 @@ class StandInBackend:
         if ckpt.exists():  # resume = reuse
             m.load_state_dict(torch.load(ckpt))
             return m
-        X, Y, A = [], [], []
+        X, Y = [], []
         with torch.no_grad():
             for tr in train:
                 z = m.context(torch.as_tensor(self.context_features(tr))[None])[0]

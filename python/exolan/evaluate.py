@@ -100,7 +100,7 @@ def forward_errors(model, trials, horizons: Sequence[int] = HORIZONS, stride: in
     joints = list(trials[0].joints)
     Hmax = max(horizons)
     acc = _Acc(len(joints))
-    x0, xd0, seq = [], [], {k: [] for k in ("tau", "z", "f_v", "q", "qd")}
+    seq = {k: [] for k in ("tau", "z", "f_v", "q", "qd")}
     dt = float(trials[0].dt)
     for t in trials:
         d = trial_tensors(model, t)

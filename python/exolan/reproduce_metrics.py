@@ -223,7 +223,6 @@ def _task_identification(model, backend, train, dtype, seed: int, scale: Scale) 
     """z over the training trajectories -> task label with an MLP 3 x 64 (ReLU), softmax cross-entropy
     with inverse-training-frequency class weights (the paper's protocol). Two 80/20 splits per seed:
     by sample (as the paper) and by trajectory (no temporal leakage: neighbouring samples share z)."""
-    import torch
     rng = np.random.default_rng(seed)
     Z, Y, G = [], [], []
     tasks = sorted({t.task for t in train})

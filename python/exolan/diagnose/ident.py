@@ -28,7 +28,7 @@ from scipy import stats as sps
 
 from ..data import finite_runs
 from ..extensions import COULOMB_EPS
-from . import stats, wls
+from . import wls
 
 SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
 CUTOFF_HZ = 25.0        # default low-pass of q and τ: above a limb's or a drive's motion, below encoder noise

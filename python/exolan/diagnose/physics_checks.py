@@ -127,7 +127,7 @@ def rivals(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, n_boot: in
         win, lose = (e, rv) if why[e] is None else (rv, e)
         res.status[(win, j)] = ("accepted", res.status[(win, j)][1] + f"; but in its place {lose} fails the learned "
                                 "base's cross-check, and this term passes it")
-        res.status[(lose, j)] = ("rejected", res.status[(lose, j)][1] + f"; in the place they share, " + why[lose])
+        res.status[(lose, j)] = ("rejected", res.status[(lose, j)][1] + "; in the place they share, " + why[lose])
         if log:
             log(f"physics: {win} on {flat.joints[j]} taken for its rival {lose}, which {why[lose]}")
         for t in keep:
