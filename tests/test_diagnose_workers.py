@@ -99,3 +99,60 @@ def test_a_thread_waiting_for_a_result_lends_its_permit_to_the_thread_making_it(
         return 1
     assert w.map([lambda: w.once(store, "k", make)] * 2) == [1, 1]
     assert busy.peak == 2
+
+
+def test_a_result_made_ahead_holds_a_permit_and_is_handed_over():
+    """`Ahead` works on one of the pool's permits (the run never holds more than n threads busy) and `result()`
+    waits for it without holding one."""
+    from exolan.diagnose.workers import Ahead
+    w, busy = Workers(2), Busy()
+    ahead = Ahead(w, lambda: (busy.run(0.2), "model")[1])
+    time.sleep(0.05)
+    w.map([lambda: busy.run(0.05)] * 3)
+    assert ahead.result() == "model"
+    assert busy.peak == 2
+
+
+def test_a_fit_started_ahead_stops_at_its_next_progress_tick_when_cancelled():
+    """A fit whose result is no longer wanted gives its core back at once: the progress callback of every fit
+    (`settings.heartbeat`) raises `Cancelled` on its thread, and the permit returns to the pool."""
+    from exolan.diagnose.settings import Settings, heartbeat
+    from exolan.diagnose.workers import Ahead, Cancelled
+    w, steps = Workers(1), []
+
+    def fit():
+        tick = heartbeat(Settings(verbose=False), "a fit", 10 ** 6)
+        for i in range(10 ** 6):
+            steps.append(i)
+            tick(i, 0.0)
+            time.sleep(0.001)
+        return "finished"
+    ahead = Ahead(w, fit)
+    time.sleep(0.1)
+    ahead.cancel()
+    t0 = time.time()
+    with pytest.raises(Cancelled):
+        ahead.result()
+    assert time.time() - t0 < 5 and 0 < len(steps) < 10 ** 6
+    assert w.map([lambda: 1]) == [1]            # the only permit is back
+    tick = heartbeat(Settings(verbose=False), "a fit on this thread", 10)
+    tick(0, 0.0)                                # a fit on another thread is not cancelled with it
+
+
+def test_physics_first_with_its_extended_model_started_ahead_gives_the_same_diagnosis(tmp_path, capsys):
+    """With a second worker, physics first's extended model is fitted beside the base fit (`physics_path.
+    extended_ahead`) and handed over where the final terms are those it was started for: the diagnosis is the one
+    made one fit at a time."""
+    from exolan.diagnose.synthetic import servo_trial
+    trials = [servo_trial(f"r{k}", seconds=8.0, seed=k, viscous=200.0, coulomb=20.0, offset=-3.0) for k in range(2)]
+
+    def report(workers, verbose):
+        rep = diagnose(trials, out=tmp_path / f"p{workers}", quick=True, hidden=8, steps_base=150, steps_refit=60,
+                       effects=("viscous_damping", "coulomb_friction"), verbose=verbose, workers=workers)
+        return json.loads(json.dumps({k: rep[k] for k in ("findings", "rejected", "extended", "physics")},
+                                     default=str))
+    one, two = report(1, False), report(2, True)
+    assert "extended model started ahead" in capsys.readouterr().out
+    assert [f["effect"] for f in two["findings"]] == ["viscous_damping", "coulomb_friction"]
+    assert "without the terms" in two["extended"]["model"]
+    assert _without_timings(one) == _without_timings(two)

@@ -177,6 +177,42 @@ def held_terms(phys: physics.PhysicsResult, joint_ids) -> tuple[list, dict]:
     return keys, term_init(phys, keys)
 
 
+def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, make) -> tuple | None:
+    """Physics first's extended model started while the learned base is fitted, on the core that fit leaves free
+    (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit,
+    which it does not need). The selection runs on every joint before the gate, its accepted terms and sizes are
+    the key, and the selection is reset, so the gate sees the parametric base as before. Returns (key, `Ahead`) or
+    None; `take_ahead` hands the model over where the final terms and sizes are the key, else it is cancelled."""
+    from . import physics_subjects
+    from .settings import log
+    from .workers import Ahead
+    n_boot, seconds = max(s.n_boot // 2, 200), phys.seconds
+    physics.select(phys, flat, n_boot=n_boot, joints=joint_ids)
+    physics_subjects.take(phys, flat, n_boot=n_boot)
+    accepted = list(phys.accepted)
+    init = term_init(phys, accepted) if accepted else None
+    physics.reset(phys)
+    phys.seconds = seconds          # the report's time of physics first is that of its own selection
+    if not accepted:
+        return None
+    log(s, "physics first's extended model started ahead, beside the base fit (kept if the gate and the checks "
+           "leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
+    return _terms_key(accepted, init), Ahead(workers, lambda: make(accepted, init))
+
+
+def _terms_key(accepted: list, init: dict) -> str:
+    import json
+    return json.dumps([sorted([e, int(j)] for e, j in accepted), init], sort_keys=True,
+                      default=lambda o: np.asarray(o).tolist())
+
+
+def take_ahead(ahead: tuple | None, accepted: list, init: dict):
+    """The model `extended_ahead` started, where it was started for these terms at these sizes (else None)."""
+    if ahead is None or ahead[0] != _terms_key(accepted, init):
+        return None
+    return ahead[1].result()
+
+
 def term_init(phys: physics.PhysicsResult, accepted: list) -> dict:
     """`ExtendedModel`'s init of the accepted terms at their physical sizes (a subject form's per subject)."""
     init: dict = {}

@@ -54,14 +54,19 @@ def describe_base(base, flat, s: Settings, given: bool) -> str:
     return text + (f", adapted to the data's training segments ({s.steps_base} steps)" if s.adapt_model else "")
 
 
-def fit_base(flat, s: Settings, model):
+def new_base(flat, s: Settings):
+    """The slow-context base before its fit (`base.make_base` with the settings' options)."""
+    return make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed, pelvis_tilt=s.pelvis_tilt,
+                     pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
+
+
+def fit_base(flat, s: Settings, model, start=None):
     """The base (slow-context DeLaN, or a given run's pooled model adapted to these data) and its state before the
     fit, from which fits from scratch start (None: a model judged as given, whose extended models are warm starts).
-    A given run's networks and the diagnosis' terms are fitted with the base's own schedule (`base.PooledContext`)."""
+    A given run's networks and the diagnosis' terms are fitted with the base's own schedule (`base.PooledContext`).
+    `start`: the slow-context base before its fit, where the caller made it already (`new_base`)."""
     t0 = time.time()
-    base = model if model is not None else make_base(flat, hidden=s.hidden, z_dim=s.z_dim, seed=s.seed,
-                                                     pelvis_tilt=s.pelvis_tilt, pelvis_surge=s.pelvis_surge,
-                                                     lim_cop=s.lim_cop)
+    base = model if model is not None else copy.deepcopy(start) if start is not None else new_base(flat, s)
     base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
     if base_start is not None:
         base_fit(base, flat, s)
@@ -131,11 +136,11 @@ def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, work
                 twin_d=twin_d)
 
 
-def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids) -> tuple[Session, str]:
+def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids, start=None) -> tuple[Session, str]:
     """Step 1: the base, the fit weights and the reference refit, in the learned path's `Session` (every decision
     compares held-out errors weighted as the fits are; what the report calls a held-out gain is the unweighted one,
     the user's torque error). Returns it and the base's description."""
-    base, base_start, base_source = fit_base(flat, s, model)
+    base, base_start, base_source = fit_base(flat, s, model, start)
     held = flat.index("held")
     w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
     ref = copy.deepcopy(base)
@@ -163,16 +168,36 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     log(s, f"{len(trials)} trials, {flat.q.shape[0]} samples ({len(flat.index('train'))} train, {len(held)} held out), "
            f"joints {flat.joints} {flat.joint_types}, exo={flat.has_exo}, insole={flat.has_insole}")
     joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
+    from . import physics_path
+    start = new_base(flat, s) if model is None else None      # made here: the fit started ahead needs it too
+    ahead = []
+
     def parametric():
         from . import physics
         p = physics.setup(flat, s.effects, joint_ids, alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay)
         log(s, f"parametric base fitted ({p.seconds:.1f} s)")
+        if start is not None and workers.n > 1:     # the core the base fit leaves free
+            ahead.append(physics_path.extended_ahead(p, flat, s, joint_ids, workers, lambda terms, init:
+                                                     tools.fit_without(flat, s, start, terms, init)))
         return p
 
     step(s, "1/7 base and reference" + (" beside the parametric base" if s.physics_first else ""))
-    # independent (numpy and torch, each on one thread): side by side where a second worker is free
-    (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids),
-                                           parametric if s.physics_first else lambda: None])
+    try:
+        # independent (numpy and torch, each on one thread): side by side where a second worker is free
+        (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
+                                               parametric if s.physics_first else lambda: None])
+        return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
+                                ahead[0] if ahead else None)
+    finally:
+        for a in ahead:
+            if a is not None:
+                a[1].cancel()
+
+
+def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, ahead) -> dict:
+    """`run` from the gate on: which path decides each joint, rule 6, the learned path, physics first's report.
+    `ahead`: physics first's extended model started beside the base fit (`physics_path.extended_ahead`)."""
+    from . import compensate, physics_path
     raw = ss
     adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy) if phys is not None else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
@@ -180,7 +205,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     # joints' equations would go to physics first only if every joint it touches passed; none does today.)
     phys_joints = [j for j in joint_ids if adequate and adequate["paths"][flat.joints[j]] == "physics first"]
     learned_joints = [j for j in joint_ids if j not in phys_joints]
-    from . import compensate, physics_path
+    if ahead is not None and learned_joints:     # the learned path needs both cores, and its report another model
+        ahead[1].cancel()
     # rule 6 (the learned base's check) before the learned path's data are compensated: a term it sets aside must
     # not be taken out of them
     held_models = tools.learned_check(phys, raw.base, raw.ref, flat, s, phys_joints,
@@ -211,7 +237,8 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     return physics_path.report(flat, s, trials, raw.base, raw.ref, base_source, noise, phys, adequate, phys_joints,
                                held, limits, lambda m: log(s, m), held_models, learned=learned,
                                fit_without=None if raw.base_start is None else
-                               lambda terms, init: tools.fit_without(flat, s, raw.base_start, terms, init))
+                               lambda terms, init: physics_path.take_ahead(ahead, terms, init) or
+                               tools.fit_without(flat, s, raw.base_start, terms, init))
 
 
 def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: dict) -> dict:

@@ -6,7 +6,8 @@ one after the other (measured: two fits from scratch of the 4-user world, 1.82x,
 docs/DIAGNOSIS.md, "Time"). Why not a `concurrent.futures` pool: a candidate's task asks for further fits (its
 second look's seeds) from inside a worker, and a fixed pool whose workers wait on their own sub-tasks deadlocks.
 Here the caller always works through its own list, and takes a free slot for a helper thread where one is
-left, so the run never holds more than `n` threads busy and a nested call cannot wait on itself."""
+left, so the run never holds more than `n` threads busy and a nested call cannot wait on itself. `Ahead`: one
+fit started before it is known to be needed, on a permit of the same pool, cancelled at its next progress tick."""
 from __future__ import annotations
 
 import threading
@@ -117,3 +118,54 @@ class Workers:
                 store[key] = make()
             return store[key]
 
+
+
+class Cancelled(Exception):
+    """Raised inside a fit whose result is no longer wanted (`Ahead.cancel`), at its next progress tick."""
+
+
+_STOP = threading.local()
+
+
+def stop_requested() -> bool:
+    """Whether the fit running on this thread was cancelled (`Ahead`); `settings.heartbeat` asks at every step."""
+    ev = getattr(_STOP, "event", None)
+    return ev is not None and ev.is_set()
+
+
+class Ahead:
+    """`make()` on a thread of its own, started before the caller knows it will want the result, on one of the
+    pool's permits (it waits for one, so the run still never holds more than `n` threads busy). `result()` waits
+    for it (without holding a permit meanwhile); `cancel()` stops its fit at the next progress tick."""
+
+    def __init__(self, workers: Workers, make: Callable):
+        self._workers, self._stop, self._done = workers, threading.Event(), threading.Event()
+        self._out, self._exc = None, None
+
+        def work():
+            workers._take()
+            _STOP.event = self._stop
+            try:
+                if not self._stop.is_set():
+                    self._out = make()
+            except Cancelled:
+                pass
+            except BaseException as exc:        # re-raised by `result()`
+                self._exc = exc
+            finally:
+                _STOP.event = None
+                workers._give()
+                self._done.set()
+
+        threading.Thread(target=work, daemon=True).start()
+
+    def cancel(self) -> None:
+        self._stop.set()
+
+    def result(self):
+        self._workers._wait(self._done.wait)
+        if self._exc is not None:
+            raise self._exc
+        if self._stop.is_set() and self._out is None:
+            raise Cancelled("the result was cancelled before it was made")
+        return self._out
