@@ -11,6 +11,10 @@ by the learned path, and each of them carries the parametric estimate beside its
 """
 from __future__ import annotations
 
+import copy
+import json
+import threading
+
 import numpy as np
 import torch
 
@@ -20,6 +24,7 @@ from .candidates import LIBRARY, blank_entry
 from .export import extend
 from .fit import predict, sq_errors
 from .flat import sample_groups
+from .workers import Ahead, Cancelled, stop_or_go
 
 RULE = ("Physics first: every candidate term was fitted jointly with a parametric rigid-body base (inertia, "
         "gravity where it can act, a constant offset, the insole contact where there is one) by weighted least "
@@ -177,40 +182,62 @@ def held_terms(phys: physics.PhysicsResult, joint_ids) -> tuple[list, dict]:
     return keys, term_init(phys, keys)
 
 
-def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, make) -> tuple | None:
+def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, make) -> "ExtendedAhead":
     """Physics first's extended model started while the learned base is fitted, on the core that fit leaves free
-    (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit,
-    which it does not need). The selection runs on every joint before the gate, its accepted terms and sizes are
-    the key, and the selection is reset, so the gate sees the parametric base as before. Returns (key, `Ahead`) or
-    None; `take_ahead` hands the model over where the final terms and sizes are the key, else it is cancelled."""
-    from . import physics_subjects
-    from .settings import log
-    from .workers import Ahead
-    n_boot, seconds = max(s.n_boot // 2, 200), phys.seconds
-    physics.select(phys, flat, n_boot=n_boot, joints=joint_ids)
-    physics_subjects.take(phys, flat, n_boot=n_boot)
-    accepted = list(phys.accepted)
-    init = term_init(phys, accepted) if accepted else None
-    physics.reset(phys)
-    phys.seconds = seconds          # the report's time of physics first is that of its own selection
-    if not accepted:
-        return None
-    log(s, "physics first's extended model started ahead, beside the base fit (kept if the gate and the checks "
-           "leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
-    return _terms_key(accepted, init), Ahead(workers, lambda: make(accepted, init))
+    (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit, and
+    needs neither the learned base nor the gate): the selection on a copy of `phys` (the main flow selects on
+    `phys` meanwhile), run on every joint before the gate; its accepted terms and sizes are the key."""
+    return ExtendedAhead(copy.deepcopy(phys), flat, s, joint_ids, workers, make)
+
+
+class ExtendedAhead:
+    """`extended_ahead`'s fit on a thread of its own (`workers.Ahead`); `take` hands the model over where the final
+    terms and sizes are those it was started for, else cancels it (the selection and the fit stop at their next
+    candidate or step)."""
+
+    def __init__(self, phys, flat, s, joint_ids, workers, make):
+        self.key, self._keyed, self._workers = None, threading.Event(), workers
+        self._ahead = Ahead(workers, lambda: self._work(phys, flat, s, joint_ids, make))
+
+    def _work(self, phys, flat, s, joint_ids, make):
+        from . import physics_subjects
+        from .settings import log
+        try:
+            stop = lambda msg: stop_or_go()      # noqa: E731  every candidate's test asks
+            n_boot = max(s.n_boot // 2, 200)
+            physics.select(phys, flat, n_boot=n_boot, joints=joint_ids, log=stop)
+            physics_subjects.take(phys, flat, n_boot=n_boot, log=stop)
+            accepted = list(phys.accepted)
+            if not accepted:
+                return None
+            init = term_init(phys, accepted)
+            self.key = _terms_key(accepted, init)
+        finally:
+            self._keyed.set()
+        log(s, "physics first's extended model started ahead, beside the base fit (kept if the gate and the checks "
+               "leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
+        return make(accepted, init)
+
+    def cancel(self) -> None:
+        self._ahead.cancel()
+
+    def take(self, accepted: list, init: dict):
+        """The model where it was started for these terms at these sizes, else None (and the fit is cancelled)."""
+        if self._ahead.cancelled:
+            return None
+        self._workers._wait(self._keyed.wait)
+        if self.key is None or self.key != _terms_key(accepted, init):
+            self.cancel()
+            return None
+        try:
+            return self._ahead.result()
+        except Cancelled:
+            return None
 
 
 def _terms_key(accepted: list, init: dict) -> str:
-    import json
     return json.dumps([sorted([e, int(j)] for e, j in accepted), init], sort_keys=True,
                       default=lambda o: np.asarray(o).tolist())
-
-
-def take_ahead(ahead: tuple | None, accepted: list, init: dict):
-    """The model `extended_ahead` started, where it was started for these terms at these sizes (else None)."""
-    if ahead is None or ahead[0] != _terms_key(accepted, init):
-        return None
-    return ahead[1].result()
 
 
 def term_init(phys: physics.PhysicsResult, accepted: list) -> dict:

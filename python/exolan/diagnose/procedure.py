@@ -190,8 +190,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
                                 ahead[0] if ahead else None)
     finally:
         for a in ahead:
-            if a is not None:
-                a[1].cancel()
+            a.cancel()
 
 
 def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, ahead) -> dict:
@@ -206,7 +205,7 @@ def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss
     phys_joints = [j for j in joint_ids if adequate and adequate["paths"][flat.joints[j]] == "physics first"]
     learned_joints = [j for j in joint_ids if j not in phys_joints]
     if ahead is not None and learned_joints:     # the learned path needs both cores, and its report another model
-        ahead[1].cancel()
+        ahead.cancel()
     # rule 6 (the learned base's check) before the learned path's data are compensated: a term it sets aside must
     # not be taken out of them
     held_models = tools.learned_check(phys, raw.base, raw.ref, flat, s, phys_joints,
@@ -237,7 +236,7 @@ def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss
     return physics_path.report(flat, s, trials, raw.base, raw.ref, base_source, noise, phys, adequate, phys_joints,
                                held, limits, lambda m: log(s, m), held_models, learned=learned,
                                fit_without=None if raw.base_start is None else
-                               lambda terms, init: physics_path.take_ahead(ahead, terms, init) or
+                               lambda terms, init: (ahead and ahead.take(terms, init)) or
                                tools.fit_without(flat, s, raw.base_start, terms, init))
 
 

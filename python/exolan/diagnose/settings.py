@@ -6,7 +6,7 @@ import time
 from dataclasses import dataclass, field
 
 from .candidates import FITTED
-from .workers import Cancelled, stop_requested
+from .workers import stop_or_go
 
 
 def default_workers() -> int:
@@ -110,8 +110,7 @@ def heartbeat(s: Settings, what: str, steps: int):
     """A `fit.train` progress callback: a line saying which step of the procedure, which fit (its terms: the
     candidate) and which optimiser step, when none was printed for a while."""
     def tick(i: int, loss: float) -> None:
-        if stop_requested():        # a fit started ahead whose result is no longer wanted (`workers.Ahead`)
-            raise Cancelled(what)
+        stop_or_go()        # a fit started ahead whose result is no longer wanted (`workers.Ahead`)
         if s.verbose and time.time() - _LAST_LINE[0] >= HEARTBEAT_S:
             where = f"[{_STEP[0]}] " if _STEP[0] else ""
             log(s, f"... {where}{what}: step {i + 1}/{steps}, loss {loss:.4g}")

@@ -133,6 +133,13 @@ def stop_requested() -> bool:
     return ev is not None and ev.is_set()
 
 
+def stop_or_go() -> None:
+    """Raise `Cancelled` where the work on this thread was cancelled (`Ahead`): every fit's progress tick and the
+    selection's candidate lines ask."""
+    if stop_requested():
+        raise Cancelled("cancelled")
+
+
 class Ahead:
     """`make()` on a thread of its own, started before the caller knows it will want the result, on one of the
     pool's permits (it waits for one, so the run still never holds more than `n` threads busy). `result()` waits
@@ -161,6 +168,10 @@ class Ahead:
 
     def cancel(self) -> None:
         self._stop.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._stop.is_set()
 
     def result(self):
         self._workers._wait(self._done.wait)
