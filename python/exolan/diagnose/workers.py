@@ -119,7 +119,6 @@ class Workers:
             return store[key]
 
 
-
 class Cancelled(Exception):
     """Raised inside a fit whose result is no longer wanted (`Ahead.cancel`), at its next progress tick."""
 
