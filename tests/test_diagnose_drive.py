@@ -435,3 +435,19 @@ def test_a_rival_pair_is_told_apart_where_only_one_of_them_shows_on_the_learned_
         assert "shows no such term" in ver[gain]["reason"]
     else:
         assert redone == [] and ver[strap]["status"] == ver[gain]["status"] == "ambiguous", ver
+
+
+def test_rule_4_takes_its_rivals_from_the_runs_candidate_family():
+    """A pendulum under a spring-like exo torque (τ_e = −K q) that acts 12.6 ms late: a strap is a rival of the delay
+    (rule 4), but where the caller asks only for damping and delay (`--effects`), no strap may be tested beside them
+    nor named (it had been `ambiguous` with the delay: a look outside the family-wise budget's m)."""
+    rng = np.random.default_rng(2)          # the draw where the strap had been named (the point is the family)
+    d, K = float(rng.uniform(0.01, 0.02)), float(rng.uniform(10, 30))
+    wave, t = _waves(rng), np.arange(T_ROWS) * DT
+    q = wave(4, (0.1, 0.3), (0.2, 0.6))
+    qd, qdd = np.gradient(q, DT), np.gradient(np.gradient(q, DT), DT)
+    te = -K * q
+    tau = 0.3 * qdd + 4.0 * np.sin(q) + te - np.interp(t - d, t, te) + 0.1 * rng.standard_normal(T_ROWS)
+    res = physics.identify(prepare([_knee_trial(q, qd, qdd, tau, te)]), ("viscous_damping", "actuation_delay"), [0])
+    assert {e for e, _ in res.status} <= {"viscous_damping", "actuation_delay"}, res.summary(("knee",))
+    assert res.family == 2

@@ -433,11 +433,13 @@ def _base_sizes(prob: ident.JointProblem, f: ident.Fit) -> dict:
 
 def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
     """Rule 4: an accepted term and a rival that explains the held-out data as well, and is a constant of the joint
-    too (`consistency.across_trials`), are ambiguous (or the simpler of a nested pair is taken)."""
+    too (`consistency.across_trials`), are ambiguous (or the simpler of a nested pair is taken). Rivals come from
+    the run's candidate family: an effect the caller did not ask for is neither tested nor named (nor in the
+    family-wise budget's m)."""
     for j, terms in accepted.items():
         for e in list(terms):
             for rv in rivals(e):
-                if rv not in ident.TERMS or rv in terms or (LIBRARY[rv].needs_exo and not flat.has_exo):
+                if (rv, j) not in res._cands or rv in terms:
                     continue
                 alt_terms = [x if x != e else rv for x in terms]
                 alt = probs[j].fit(alt_terms)
