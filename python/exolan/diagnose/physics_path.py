@@ -182,6 +182,15 @@ def held_terms(phys: physics.PhysicsResult, joint_ids) -> tuple[list, dict]:
     return keys, term_init(phys, keys)
 
 
+def select_terms(phys: physics.PhysicsResult, flat, s, joint_ids, log) -> None:
+    """Physics first's selection on `joint_ids` and its subject forms (`physics.select`, `physics_subjects.take`):
+    the gate's run and the one started ahead (`extended_ahead`) must be the same for the latter's key to match."""
+    from . import physics_subjects
+    n_boot = max(s.n_boot // 2, 200)
+    physics.select(phys, flat, n_boot=n_boot, log=log, joints=joint_ids)
+    physics_subjects.take(phys, flat, n_boot=n_boot, log=log)
+
+
 def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, make) -> "ExtendedAhead":
     """Physics first's extended model started while the learned base is fitted, on the core that fit leaves free
     (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit, and
@@ -200,13 +209,9 @@ class ExtendedAhead:
         self._ahead = Ahead(workers, lambda: self._work(phys, flat, s, joint_ids, make))
 
     def _work(self, phys, flat, s, joint_ids, make):
-        from . import physics_subjects
         from .settings import log
         try:
-            stop = lambda msg: stop_or_go()      # noqa: E731  every candidate's test asks
-            n_boot = max(s.n_boot // 2, 200)
-            physics.select(phys, flat, n_boot=n_boot, joints=joint_ids, log=stop)
-            physics_subjects.take(phys, flat, n_boot=n_boot, log=stop)
+            select_terms(phys, flat, s, joint_ids, lambda msg: stop_or_go())    # every candidate's line asks
             accepted = list(phys.accepted)
             if not accepted:
                 return None

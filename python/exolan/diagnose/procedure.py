@@ -84,7 +84,7 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
     most (every linear term at once) against the learned reference; the selection runs on the candidates of the
     joints where it is not worse on held-out data, then the cross-check, then the gate again with the accepted terms
     only. Returns the gate with `paths`: joint name -> the path that decides its candidates."""
-    from . import physics, physics_checks, physics_path, physics_subjects
+    from . import physics, physics_checks, physics_path
 
     first = gate(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
                  what="the parametric base with every linear candidate term")
@@ -93,8 +93,7 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
     while passing:
         # a joint that fails the second gate leaves to the learned path: the selection runs again without it, so
         # its acceptances count in no other joint's Holm thresholds (the set only shrinks: at most one rerun a joint)
-        physics.select(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m), joints=passing)
-        physics_subjects.take(phys, flat, n_boot=max(s.n_boot // 2, 200), log=lambda m: log(s, m))
+        physics_path.select_terms(phys, flat, s, passing, lambda m: log(s, m))
         log(s, phys.summary(flat.joints))
         residual = physics_path.learned_residual(ref, flat)
         physics_checks.cross_check(phys, flat, residual, passing, log=lambda m: log(s, m))

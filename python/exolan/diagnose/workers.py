@@ -126,16 +126,11 @@ class Cancelled(Exception):
 _STOP = threading.local()
 
 
-def stop_requested() -> bool:
-    """Whether the fit running on this thread was cancelled (`Ahead`); `settings.heartbeat` asks at every step."""
-    ev = getattr(_STOP, "event", None)
-    return ev is not None and ev.is_set()
-
-
 def stop_or_go() -> None:
     """Raise `Cancelled` where the work on this thread was cancelled (`Ahead`): every fit's progress tick and the
     selection's candidate lines ask."""
-    if stop_requested():
+    ev = getattr(_STOP, "event", None)
+    if ev is not None and ev.is_set():
         raise Cancelled("cancelled")
 
 
