@@ -7,8 +7,9 @@ with `--against REV`, the same measurement of the tree at git revision REV in th
 
 Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
 alternating within every repeat so that a busy machine slows both alike; a figure is the best of `--repeats`
-(the least disturbed run). The old tree is checked out once into a git worktree under out/bench_trees/ and,
-at 2 threads, also measured with this tree's OpenMP wait policy (exolan sets OMP_WAIT_POLICY=PASSIVE).
+(the least disturbed run). The old tree is checked out once into a git worktree under out/bench_trees/ and
+measured twice: as it ships, and with this tree's process settings (exolan/runtime.py: OpenMP's wait policy, glibc's allocator
+thresholds) given as environment variables, which says how much of a gain is the code.
 Without --data it simulates the paper's training split (21 users x the 7 training tasks, 6 s per trial) into
 out/bench_world once. A benchmark script, not a test.
 """
@@ -95,12 +96,16 @@ def tree_of(rev: str) -> Path:
     return d
 
 
+# this tree's process settings (exolan/runtime.py) as environment variables, for a tree that lacks them
+SETTINGS = {"OMP_WAIT_POLICY": "PASSIVE", "MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(1 << 30)}
+
+
 def measure(tree: Path, data: str, config: str, threads: int, batches: int, batch_size: int,
-            wait_policy: str | None = None, device: str = "cpu") -> dict:
+            settings: dict | None = None, device: str = "cpu") -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree / "python"), OMP_NUM_THREADS=str(threads))
-    env.pop("OMP_WAIT_POLICY", None)                   # each tree as it ships, unless asked otherwise
-    if wait_policy:
-        env["OMP_WAIT_POLICY"] = wait_policy
+    for k in SETTINGS:
+        env.pop(k, None)                               # each tree as it ships, unless asked otherwise
+    env.update(settings or {})
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", config, "--data", data,
            "--threads", str(threads), "--batches", str(batches), "--batch-size", str(batch_size),
            "--device", device]
@@ -135,21 +140,19 @@ def main() -> None:
     if args.against:
         old = tree_of(args.against)
         trees[args.against] = (old, None)
-        # the old tree with this tree's OpenMP wait policy: how much of a multi-thread gain is code
-        trees[args.against + "+passive"] = (old, "PASSIVE")
+        # the old tree with this tree's process settings (wait policy, allocator): how much of a gain is code
+        trees[args.against + "+settings"] = (old, SETTINGS)
     threads = [int(t) for t in args.threads.split(",")]
     configs = [c for c in args.configs.split(",") if c]
     best: dict[tuple, float] = {}
     for r in range(args.repeats):
         for config in configs:
             for th in threads:
-                for name, (tree, policy) in trees.items():
-                    if policy and th == 1:
-                        continue                       # one thread never waits for another
-                    m = measure(tree, str(data), config, th, args.batches, args.batch_size, policy, args.device)
+                for name, (tree, settings) in trees.items():
+                    m = measure(tree, str(data), config, th, args.batches, args.batch_size, settings, args.device)
                     key = (config, th, name)
                     best[key] = max(best.get(key, 0.0), m["samples_per_s"])
-                    print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:10s} "
+                    print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:18s} "
                           f"{m['samples_per_s']:9.0f} samples/s ({m['ms_per_batch']:.0f} ms/batch)", flush=True)
     print(f"\nbest of {args.repeats}, batch {args.batch_size}, {args.device}, samples/s (higher is better):")
     rows = []
@@ -162,10 +165,9 @@ def main() -> None:
                 old = best[(config, th, args.against)]
                 line += f"   {args.against} {old:9.0f}   ratio {new / old:5.2f}x"
                 row.update(old=old, ratio=new / old)
-                oldp = best.get((config, th, args.against + "+passive"))
-                if oldp:
-                    line += f"   (vs {args.against} with OMP_WAIT_POLICY=PASSIVE {oldp:9.0f}: {new / oldp:5.2f}x)"
-                    row.update(old_passive=oldp, ratio_passive=new / oldp)
+                olds = best[(config, th, args.against + "+settings")]
+                line += f"   (vs {args.against} with this tree's process settings {olds:9.0f}: {new / olds:5.2f}x)"
+                row.update(old_settings=olds, ratio_settings=new / olds)
             print(line)
             rows.append(row)
     if args.json:

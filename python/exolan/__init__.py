@@ -3,12 +3,11 @@
 The learning side (torch) lives in this package; the fast engine is the Rust extension
 ``exolan._native``.
 """
-import os as _os
 from importlib.metadata import PackageNotFoundError, version as _dist_version
 
-# OpenMP threads that spin while they wait collapse torch's multi-threaded speed on a shared machine (measured: a
-# training step 3.1x slower at 2 threads beside other work, docs/TRAINING.md); read once, when torch loads.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from . import runtime as _runtime
+
+RUNTIME = _runtime.apply()  # before torch loads: OpenMP's wait policy and glibc's allocator (runtime.py)
 
 try:
     __version__ = _dist_version("exolan")

@@ -146,6 +146,9 @@ def doctor(args: argparse.Namespace) -> int:
     native = exolan.native_version
     print(f"exolan._native (Rust)   {native if native else 'NOT BUILT'}")
     print(f"cpu threads             {os.cpu_count()}")
+    rt = exolan.RUNTIME
+    print(f"runtime                 OMP_WAIT_POLICY={rt['omp_wait_policy']}, "
+          f"allocator keeps freed memory: {'yes' if rt['malloc_keeps_freed_memory'] else 'no'}")
     ok = native is not None and native == exolan.__version__
     print("native build matches python package: " + ("yes" if ok else "NO"))
     return 0 if ok else 1
