@@ -8,8 +8,8 @@
   (2.3x the page faults; docs/TRAINING.md, "The allocator"). `mallopt` keeps them: blocks up to 32 MiB come
   from the heap, and free memory at its top is returned only beyond 1 GiB.
 
-Either setting is left alone where the user made it (OMP_WAIT_POLICY, any MALLOC_*_ variable); EXOLAN_MALLOPT=0
-turns the second off.
+Either setting is left alone where the user made one (OMP_WAIT_POLICY; any MALLOC_* variable or a malloc tunable
+in GLIBC_TUNABLES); EXOLAN_MALLOPT=0 turns the second off.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def keep_freed_memory() -> bool:
     """Set glibc's mmap and trim thresholds (above); True where they were set, False where skipped."""
     if os.environ.get("EXOLAN_MALLOPT", "1") == "0" or not sys.platform.startswith("linux"):
         return False
-    if any(k.startswith("MALLOC_") and k.endswith("_") for k in os.environ):
+    if any(k.startswith("MALLOC_") for k in os.environ) or "malloc" in os.environ.get("GLIBC_TUNABLES", ""):
         return False                                   # the user tuned glibc's allocator already
     try:
         mallopt = ctypes.CDLL("libc.so.6").mallopt     # glibc only (musl has no such library name)
