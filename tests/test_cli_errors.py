@@ -36,6 +36,8 @@ def _bad_inputs(tmp: Path) -> dict:
         "train missing data": (["train", "--data", str(missing), "--out", str(tmp / "r")], "missing"),
         "train bad config": (["train", "--data", str(tmp / "data"), "--config", str(tmp / "bad.toml"),
                               "--out", str(tmp / "r")], "bad.toml"),
+        "train negative threads": (["train", "--data", str(tmp / "data"), "--threads", "-1", "--out", str(tmp / "r")],
+                                   "threads"),
         "evaluate missing run": (["evaluate", str(missing), "--data", str(tmp / "data")], "missing"),
         "evaluate truncated run": (["evaluate", str(run), "--data", str(tmp / "data")], "run"),
         "export truncated run": (["export", str(run), "--out", str(tmp / "x.safetensors")], "run"),
@@ -53,6 +55,7 @@ def _bad_inputs(tmp: Path) -> dict:
 
 CASES = [  # the keys of _bad_inputs (checked in the test)
     "simulate out under a file", "plot missing folder", "plot empty csv", "train missing data", "train bad config",
+    "train negative threads",
     "evaluate missing run", "evaluate truncated run", "export truncated run", "rollout truncated weights",
     "rollout missing data", "reproduce missing data", "reproduce out under a file", "diagnose missing data",
     "diagnose empty data", "diagnose missing model", "pipeline out under a file"]

@@ -165,12 +165,13 @@ def test_killed_and_resumed_run_ends_where_uninterrupted_run_ends(small_world, t
 
 def test_cli_train_and_evaluate(small_world, tmp_path):
     cfg = tmp_path / "cfg.toml"
-    cfg.write_text('batch_size = 2048\nthreads = 1\n[model]\nhidden = 16\n')
+    cfg.write_text('batch_size = 2048\nthreads = 2\n[model]\nhidden = 16\n')
     run = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "exolan.cli", "train", "--data", str(small_world), "--method", "delan",
                         "--no-lim", "--epochs", "2", "--seed", "1", "--config", str(cfg), "--device", "cpu",
-                        "--out", str(run)], capture_output=True, text=True)
+                        "--threads", "1", "--out", str(run)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+    assert json.loads((run / "run.json").read_text())["torch_threads"] == 1     # the flag wins over the file
     assert (run / "checkpoint.pt").exists() and (run / "norm.json").exists()
     phys = json.loads((run / "physics.json").read_text())
     assert phys["positive_definite"] is True and "cond(H)" in r.stdout

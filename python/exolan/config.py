@@ -68,8 +68,8 @@ class TrainConfig:
             raise ValueError("loss weights must be ≥ 0")
         if self.ms_norm not in ("state", "increment"):
             raise ValueError(f"ms_norm must be 'state' or 'increment', not {self.ms_norm!r}")
-        if self.patience < 0 or self.val_users < 0:
-            raise ValueError("patience and val_users must be ≥ 0")
+        if self.patience < 0 or self.val_users < 0 or self.threads < 0:
+            raise ValueError("patience, val_users and threads must be ≥ 0")
         if self.patience and not self.val_users:
             raise ValueError("early stopping (patience > 0) needs a validation set: set val_users ≥ 1")
 

@@ -264,7 +264,8 @@ def cli_train(args) -> int:
     data = args.data or base.pop("data", None)     # a TOML may name its data set
     base.pop("data", None)
     overrides = dict(method=args.method, epochs=args.epochs, seed=args.seed, w_fd=args.w_fd, w_ms=args.w_ms,
-                     ms_norm=args.ms_norm, patience=args.patience, val_users=args.val_users, device=args.device)
+                     ms_norm=args.ms_norm, patience=args.patience, val_users=args.val_users, device=args.device,
+                     threads=args.threads)
     if args.no_lim:
         overrides["lim"] = False
     cfg = merge(base, **overrides)
