@@ -85,11 +85,11 @@ def test_a_thread_waiting_for_a_result_lends_its_permit_to_the_thread_making_it(
     class Observed(Workers):
         waiting = threading.Event()
 
-        def _wait(self, block):
+        def wait(self, block):
             def blocked():
                 self.waiting.set()          # the permit is given back by now
                 block()
-            super()._wait(blocked)
+            super().wait(blocked)
 
     w, store, busy = Observed(2), {}, Busy()
 

@@ -230,7 +230,7 @@ class ExtendedAhead:
         """The model where it was started for these terms at these sizes, else None (and the fit is cancelled)."""
         if self._ahead.cancelled:
             return None
-        self._workers._wait(self._keyed.wait)
+        self._workers.wait(self._keyed.wait)
         if self.key is None or self.key != _terms_key(accepted, init):
             self.cancel()
             return None

@@ -39,7 +39,7 @@ class Workers:
         self._held.permit = False
         self._permits.release()
 
-    def _wait(self, block: Callable) -> None:
+    def wait(self, block: Callable) -> None:
         """Run `block()` (a wait) without holding a permit, then take one again."""
         held = self._holds()
         if held:
@@ -90,7 +90,7 @@ class Workers:
         try:
             drain()
             for t in list(helpers):
-                self._wait(t.join)
+                self.wait(t.join)
         finally:
             if entered:
                 self._give()
@@ -105,7 +105,7 @@ class Workers:
         with self._guard:
             lk = self._locks.setdefault(key, threading.RLock())
         if not lk.acquire(blocking=False):
-            self._wait(lk.acquire)
+            self.wait(lk.acquire)
         try:
             yield
         finally:
@@ -168,7 +168,7 @@ class Ahead:
         return self._stop.is_set()
 
     def result(self):
-        self._workers._wait(self._done.wait)
+        self._workers.wait(self._done.wait)
         if self._exc is not None:
             raise self._exc
         if self._stop.is_set() and self._out is None:
