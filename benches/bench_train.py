@@ -7,7 +7,7 @@ with `--against REV`, the same measurement of the tree at git revision REV in th
 
 Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
 alternating within every repeat so that a busy machine slows both alike; a figure is the best of `--repeats`
-(the least disturbed run). The old tree is checked out once into a git worktree under out/bench_trees/ and
+(the least disturbed run; every repeat is printed and kept in the JSON). The old tree is checked out once into a git worktree under out/bench_trees/ and
 measured twice: as it ships, and with this tree's process settings (exolan/runtime.py: OpenMP's wait policy, glibc's allocator
 thresholds) given as environment variables, which says how much of a gain is the code.
 Without --data it simulates the paper's training split (21 users x the 7 training tasks, 6 s per trial) into
@@ -145,6 +145,7 @@ def main() -> None:
     threads = [int(t) for t in args.threads.split(",")]
     configs = [c for c in args.configs.split(",") if c]
     best: dict[tuple, float] = {}
+    runs: dict[tuple, list] = {}                       # every figure: best of N hides a slow mode (the allocator's)
     for r in range(args.repeats):
         for config in configs:
             for th in threads:
@@ -152,6 +153,7 @@ def main() -> None:
                     m = measure(tree, str(data), config, th, args.batches, args.batch_size, settings, args.device)
                     key = (config, th, name)
                     best[key] = max(best.get(key, 0.0), m["samples_per_s"])
+                    runs.setdefault(key, []).append(m["samples_per_s"])
                     print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:18s} "
                           f"{m['samples_per_s']:9.0f} samples/s ({m['ms_per_batch']:.0f} ms/batch)", flush=True)
     print(f"\nbest of {args.repeats}, batch {args.batch_size}, {args.device}, samples/s (higher is better):")
@@ -168,7 +170,10 @@ def main() -> None:
                 olds = best[(config, th, args.against + "+settings")]
                 line += f"   (vs {args.against} with this tree's process settings {olds:9.0f}: {new / olds:5.2f}x)"
                 row.update(old_settings=olds, ratio_settings=new / olds)
-            print(line)
+            spread = ", ".join(f"{name} {min(v):.0f}-{max(v):.0f}" for (c, t, name), v in runs.items()
+                               if (c, t) == (config, th))
+            print(line + f"\n      all repeats: {spread}")
+            row["all"] = {name: v for (c, t, name), v in runs.items() if (c, t) == (config, th)}
             rows.append(row)
     if args.json:
         Path(args.json).write_text(json.dumps(dict(against=args.against, batch=args.batch_size, device=args.device,
