@@ -7,9 +7,10 @@ with `--against REV`, the same measurement of the tree at git revision REV in th
 
 Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
 alternating within every repeat so that a busy machine slows both alike; a figure is the best of `--repeats`
-(the least disturbed run; every repeat is printed and kept in the JSON). The old tree is checked out once into a git worktree under out/bench_trees/ and
-measured twice: as it ships, and with this tree's process settings (exolan/runtime.py: OpenMP's wait policy, glibc's allocator
-thresholds) given as environment variables, which says how much of a gain is the code.
+(the least disturbed run; every repeat is printed and kept in the JSON). The old tree is checked out once into
+a git worktree under out/bench_trees/ and measured twice: as it ships, and with this tree's process settings
+(exolan/runtime.py: OpenMP's wait policy, glibc's allocator thresholds) given as environment variables, which
+says how much of a gain is the code.
 Without --data it simulates the paper's training split (21 users x the 7 training tasks, 6 s per trial) into
 out/bench_world once. A benchmark script, not a test.
 """
