@@ -97,14 +97,18 @@ def tree_of(rev: str) -> Path:
     return d
 
 
-# this tree's process settings (exolan/runtime.py) as environment variables, for a tree that lacks them
-SETTINGS = {"OMP_WAIT_POLICY": "PASSIVE", "MALLOC_MMAP_THRESHOLD_": str(32 << 20), "MALLOC_TRIM_THRESHOLD_": str(1 << 30)}
+def this_trees_settings() -> dict:
+    """This tree's process settings as environment variables, for a tree that lacks them (imported here, in the
+    parent: a worker of the old tree must not import this tree's exolan)."""
+    from exolan import runtime
+
+    return runtime.ENVIRONMENT
 
 
 def measure(tree: Path, data: str, config: str, threads: int, batches: int, batch_size: int,
             settings: dict | None = None, device: str = "cpu") -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree / "python"), OMP_NUM_THREADS=str(threads))
-    for k in SETTINGS:
+    for k in this_trees_settings():
         env.pop(k, None)                               # each tree as it ships, unless asked otherwise
     env.update(settings or {})
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", config, "--data", data,
@@ -142,7 +146,7 @@ def main() -> None:
         old = tree_of(args.against)
         trees[args.against] = (old, None)
         # the old tree with this tree's process settings (wait policy, allocator): how much of a gain is code
-        trees[args.against + "+settings"] = (old, SETTINGS)
+        trees[args.against + "+settings"] = (old, this_trees_settings())
     threads = [int(t) for t in args.threads.split(",")]
     configs = [c for c in args.configs.split(",") if c]
     best: dict[tuple, float] = {}
@@ -171,10 +175,9 @@ def main() -> None:
                 olds = best[(config, th, args.against + "+settings")]
                 line += f"   (vs {args.against} with this tree's process settings {olds:9.0f}: {new / olds:5.2f}x)"
                 row.update(old_settings=olds, ratio_settings=new / olds)
-            spread = ", ".join(f"{name} {min(v):.0f}-{max(v):.0f}" for (c, t, name), v in runs.items()
-                               if (c, t) == (config, th))
-            print(line + f"\n      all repeats: {spread}")
             row["all"] = {name: v for (c, t, name), v in runs.items() if (c, t) == (config, th)}
+            spread = ", ".join(f"{name} {min(v):.0f}-{max(v):.0f}" for name, v in row["all"].items())
+            print(line + f"\n      all repeats: {spread}")
             rows.append(row)
     if args.json:
         Path(args.json).write_text(json.dumps(dict(against=args.against, batch=args.batch_size, device=args.device,

@@ -20,6 +20,9 @@ import sys
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3          # glibc's <malloc.h> parameter numbers
 MMAP_THRESHOLD = 32 << 20                              # glibc's largest allowed value on 64-bit systems
 TRIM_THRESHOLD = 1 << 30
+# both settings as environment variables, for a process started without exolan (benches/bench_train.py's old tree)
+ENVIRONMENT = {"OMP_WAIT_POLICY": "PASSIVE", "MALLOC_MMAP_THRESHOLD_": str(MMAP_THRESHOLD),
+               "MALLOC_TRIM_THRESHOLD_": str(TRIM_THRESHOLD)}
 
 
 def keep_freed_memory() -> bool:
@@ -38,5 +41,5 @@ def keep_freed_memory() -> bool:
 
 def apply() -> dict:
     """Both settings; what was done (shown by `exolan doctor`)."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    os.environ.setdefault("OMP_WAIT_POLICY", ENVIRONMENT["OMP_WAIT_POLICY"])
     return {"omp_wait_policy": os.environ["OMP_WAIT_POLICY"], "malloc_keeps_freed_memory": keep_freed_memory()}
