@@ -10,7 +10,9 @@ differences); D = backlash − clean in q, q̇, q̈. Each is regressed on the sa
 - `tanh`: s = tanh(q̇ / 0.2), the direction of motion as a smooth sign;
 - `dwell`: s = sign(q̇) outside the dwells (|q̇| < threshold), and across a dwell that ends in a reversal the
   constant-acceleration path 1 − 2 (t/T)² of the true angle through the gap (the play operator holds the
-  measured angle while the limb crosses the gap).
+  measured angle while the limb crosses the gap);
+- `raw dwell`: the same path across the dwells found in the *raw* angle: runs of samples whose step stays within
+  k √2 σ, σ the encoder noise (robust SD of the angle minus its 40 Hz low-pass), that end in a reversal.
 
 A backlash of width w moves the measured angle by −(w/2) s, so a perfect s gives θ = −w/2 with R² = 1 in all three.
 """
@@ -62,6 +64,26 @@ def dwell_side(qd, thr):
     return s
 
 
+def raw_dwell_side(q, qd, k):
+    r = q - signal.sosfiltfilt(signal.butter(4, 40.0, fs=FS, output="sos"), q)
+    sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+    s = np.sign(qd).astype(float)
+    flat = np.abs(np.diff(q)) < k * sigma * np.sqrt(2)      # the step i -> i + 1 within the noise
+    i, n = 1, len(q)
+    while i < n - 1:
+        if not flat[i]:
+            i += 1
+            continue
+        j = i
+        while j < n - 1 and flat[j]:
+            j += 1
+        before, after = np.sign(q[i] - q[max(i - 3, 0)]), np.sign(q[min(j + 3, n - 1)] - q[j])
+        if j - i >= 2 and before != 0 and after == -before:
+            s[i:j + 1] = before * (1 - 2 * (np.arange(j - i + 1) / (j - i + 1)) ** 2)
+        i = j
+    return s
+
+
 def regress(y, x):
     th = float(x @ y / (x @ x))
     return th, 1 - float(np.var(y - th * x) / np.var(y))
@@ -74,9 +96,11 @@ def main():
     print(f"backlash {width} rad: perfect θ = {-width / 2:.4f}")
     for task in TASKS:
         kc = kinematics(recorded_knee(user, task, []))
-        kb = kinematics(recorded_knee(user, task, [Effect("backlash", "knee", width)]))
+        qb = recorded_knee(user, task, [Effect("backlash", "knee", width)])
+        kb = kinematics(qb)
         D = [b - c for b, c in zip(kb, kc)]
-        sides = {"tanh": np.tanh(kb[1] / 0.2)} | {f"dwell {t}": dwell_side(kb[1], t) for t in thresholds}
+        sides = ({"tanh": np.tanh(kb[1] / 0.2)} | {f"dwell {t}": dwell_side(kb[1], t) for t in thresholds}
+                 | {f"raw k={k}": raw_dwell_side(qb, kb[1], k) for k in (3, 4)})
         for name, s in sides.items():
             ks = kinematics(s)
             cells = [f"{lab}: θ {th:+.4f} R² {r2:.2f}" for lab, (th, r2) in
