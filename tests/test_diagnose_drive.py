@@ -158,6 +158,18 @@ def test_physics_first_sizes_an_actuation_delay_by_variable_projection():
     assert abs(res.estimates[("actuation_delay", 0)].estimate / d - 1) <= 0.15, msg
 
 
+def _spring_exo_pendulum(rng, delay_range):
+    """A pendulum under a spring-like exo torque τ_e = −K q (K 10-30) that acts d late (d from `delay_range`):
+    its delay column τ_e(t) − τ_e(t − d) ≈ −d K q̇ looks like a negative damping. Returns (trial, d)."""
+    d, K = float(rng.uniform(*delay_range)), float(rng.uniform(10, 30))
+    wave, t = _waves(rng), np.arange(T_ROWS) * DT
+    q = wave(4, (0.1, 0.3), (0.2, 0.6))
+    qd, qdd = np.gradient(q, DT), np.gradient(np.gradient(q, DT), DT)
+    te = -K * q
+    tau = 0.3 * qdd + 4.0 * np.sin(q) + te - np.interp(t - d, t, te) + 0.1 * rng.standard_normal(T_ROWS)
+    return _knee_trial(q, qd, qdd, tau, te), d
+
+
 def test_a_delay_between_grid_points_is_sized_and_not_lost_to_a_linear_rival():
     """A pendulum under a spring-like exo torque (τ_e = −K q) that acts d late, d drawn off the 2.5 ms grid: the
     delay's column then looks like a negative damping, −d K q̇, which a linear term fits at any size while the
@@ -165,15 +177,8 @@ def test_a_delay_between_grid_points_is_sized_and_not_lost_to_a_linear_rival():
     better alone, the joint fit moved the delay to 65 ms and the damping left its domain: nothing accepted).
     Refined between its grid neighbours the delay is accepted alone and within 3 % (0.1-1.2 % in these draws)."""
     for seed in range(6):
-        rng = np.random.default_rng(seed)
-        d, K = float(rng.uniform(0.01, 0.03)), float(rng.uniform(10, 30))
-        wave, t = _waves(rng), np.arange(T_ROWS) * DT
-        q = wave(4, (0.1, 0.3), (0.2, 0.6))
-        qd, qdd = np.gradient(q, DT), np.gradient(np.gradient(q, DT), DT)
-        te = -K * q
-        tau = 0.3 * qdd + 4.0 * np.sin(q) + te - np.interp(t - d, t, te) + 0.1 * rng.standard_normal(T_ROWS)
-        res = physics.identify(prepare([_knee_trial(q, qd, qdd, tau, te)]),
-                               ("viscous_damping", "actuation_delay"), [0])
+        trial, d = _spring_exo_pendulum(np.random.default_rng(seed), (0.01, 0.03))
+        res = physics.identify(prepare([trial]), ("viscous_damping", "actuation_delay"), [0])
         msg = f"seed {seed}, d {d}: {res.summary(('knee',))} {res.status}"
         assert res.accepted == [("actuation_delay", 0)], msg
         assert abs(res.estimates[("actuation_delay", 0)].estimate / d - 1) < 0.03, msg
@@ -462,13 +467,8 @@ def test_rule_4_takes_its_rivals_from_the_runs_candidate_family():
     """A pendulum under a spring-like exo torque (τ_e = −K q) that acts 12.6 ms late: a strap is a rival of the delay
     (rule 4), but where the caller asks only for damping and delay (`--effects`), no strap may be tested beside them
     nor named (it had been `ambiguous` with the delay: a look outside the family-wise budget's m)."""
-    rng = np.random.default_rng(2)          # the draw where the strap had been named (the point is the family)
-    d, K = float(rng.uniform(0.01, 0.02)), float(rng.uniform(10, 30))
-    wave, t = _waves(rng), np.arange(T_ROWS) * DT
-    q = wave(4, (0.1, 0.3), (0.2, 0.6))
-    qd, qdd = np.gradient(q, DT), np.gradient(np.gradient(q, DT), DT)
-    te = -K * q
-    tau = 0.3 * qdd + 4.0 * np.sin(q) + te - np.interp(t - d, t, te) + 0.1 * rng.standard_normal(T_ROWS)
-    res = physics.identify(prepare([_knee_trial(q, qd, qdd, tau, te)]), ("viscous_damping", "actuation_delay"), [0])
+    # the draw where the strap had been named (the point is the family)
+    trial, _ = _spring_exo_pendulum(np.random.default_rng(2), (0.01, 0.02))
+    res = physics.identify(prepare([trial]), ("viscous_damping", "actuation_delay"), [0])
     assert {e for e, _ in res.status} <= {"viscous_damping", "actuation_delay"}, res.summary(("knee",))
     assert res.family == 2
