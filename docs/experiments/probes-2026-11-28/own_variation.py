@@ -1,5 +1,5 @@
 import sys, numpy as np
-from exolan.diagnose import physics, ident
+from exolan.diagnose import physics, parallel_filter
 from exolan.diagnose.procedure import load_trials
 from exolan.diagnose.flat import prepare, exo_own
 from exolan.diagnose.candidates import FITTED
@@ -14,7 +14,7 @@ for j in J:
     prob = res._probs[j]
     terms = list(res._fits[j].terms)
     cands = terms if "torque_gain" in terms else terms + ["torque_gain"]
-    sig_own = ident.signals(exo_own(flat, j))
+    sig_own = parallel_filter.signals(exo_own(flat, j))
     own_col = np.nan_to_num(prob.sig.lp(sig_own.tau_e)[:, j])
     for label, col in (("whole", None), ("own", own_col)):
         saved = dict(prob._cols)

@@ -1,5 +1,5 @@
 import sys, numpy as np, torch
-from exolan.diagnose import physics, ident
+from exolan.diagnose import physics, ident, parallel_filter
 from exolan.diagnose.procedure import load_trials, fit_base
 from exolan.diagnose.settings import Settings
 from exolan.diagnose.flat import prepare, exo_own
@@ -15,7 +15,7 @@ r = learned_residual(base, flat)
 res = physics.setup(flat, FITTED, [0, 1])
 prob = res._probs[j]
 sig = prob.sig
-own = ident.signals(exo_own(flat, j)).tau_e[:, j]
+own = parallel_filter.signals(exo_own(flat, j)).tau_e[:, j]
 te = sig.tau_e[:, j]
 rl = sig.lp(r[:, j]) if hasattr(sig, "lp") else r[:, j]
 tr = prob.train

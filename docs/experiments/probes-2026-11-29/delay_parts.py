@@ -1,5 +1,5 @@
 import sys, numpy as np
-from exolan.diagnose import physics, ident
+from exolan.diagnose import physics, ident, parallel_filter
 from exolan.diagnose.procedure import load_trials
 from exolan.diagnose.flat import prepare, exo_own, exo_copy
 from exolan.diagnose.candidates import FITTED
@@ -10,7 +10,7 @@ j = flat.joints.index(jn)
 res = physics.setup(flat, FITTED, [0, 1])
 prob = res._probs[j]
 sig = prob.sig
-own = ident.signals(exo_own(flat, j)).tau_e[:, j]
+own = parallel_filter.signals(exo_own(flat, j)).tau_e[:, j]
 te = sig.tau_e[:, j]
 cp = te - own
 grid = ident._delay_grid(sig, j, prob.ctx)

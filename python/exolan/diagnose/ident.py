@@ -23,121 +23,14 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize, signal
+from scipy import optimize
 from scipy import stats as sps
 
-from ..data import finite_runs
 from ..extensions import COULOMB_EPS
 from . import wls
+from .parallel_filter import Signals
 
 SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
-CUTOFF_HZ = 25.0        # default low-pass of q and τ: above a limb's or a drive's motion, below encoder noise
-
-
-@dataclass
-class Signals:
-    """Signals on the rows of a `flat.Flat` (the same order): kinematics and exo torque low-passed for
-    differentiation, τ through the parallel filter (`lp`); `ok`: rows where they are usable."""
-    q: np.ndarray
-    qd: np.ndarray
-    qdd: np.ndarray
-    tau: np.ndarray
-    tau_e: np.ndarray
-    tau_e_d: np.ndarray
-    tau_e_dd: np.ndarray
-    f_v: np.ndarray
-    f_o: np.ndarray
-    x_cop: np.ndarray
-    tau_raw: np.ndarray     # the recorded τ, unfiltered: held-out errors are the user's
-    mass: np.ndarray        # (N,) body mass of each row (1 for layout 2): errors are mass-normalised as elsewhere
-    ok: np.ndarray
-    train: np.ndarray
-    held: np.ndarray
-    trial: np.ndarray
-    subject: np.ndarray
-    joint_types: tuple
-    dt: float
-    lag_of: list            # per trial: start row, length (delay shifts stay inside their trial)
-    cutoff: float
-    runs: list              # (start, stop) rows of every finite run
-    sos: tuple              # the second (parallel) filter and its pad length
-
-    def lp(self, x: np.ndarray) -> np.ndarray:
-        """x (N,) or (N, k) low-passed with the parallel filter per finite run (NaN kept where it is)."""
-        sos, pad = self.sos
-        out = np.full(x.shape, np.nan)
-        for a, b in self.runs:
-            seg = x[a:b]
-            fin = np.isfinite(seg).all(axis=tuple(range(1, seg.ndim))) if seg.ndim > 1 else np.isfinite(seg)
-            if b - a > pad + 3 and fin.all():
-                out[a:b] = signal.sosfiltfilt(sos, seg, axis=0, padlen=pad)
-        return out
-
-
-def _filtered(x: np.ndarray, runs, sos, padlen: int, dt: float):
-    """(x_f, x_f', x_f'') of x (T, k) over the given finite runs; NaN outside runs too short to filter."""
-    out = [np.full_like(x, np.nan) for _ in range(3)]
-    for a, b in runs:
-        if b - a <= padlen + 3:
-            continue
-        xf = signal.sosfiltfilt(sos, x[a:b], axis=0, padlen=padlen)
-        d1 = np.gradient(xf, dt, axis=0)
-        out[0][a:b], out[1][a:b], out[2][a:b] = xf, d1, np.gradient(d1, dt, axis=0)
-    return out
-
-
-def _design(fc: float, dt: float):
-    return signal.butter(4, fc, fs=1.0 / dt, output="sos"), int(min(3 * round(1.0 / (fc * dt)), 500))
-
-
-def _differentiation_filter(fc: float, dt: float):
-    """`signals`' first low-pass, at four times the cutoff: only for differentiating q and τ_e."""
-    return _design(min(4 * fc, 0.4 / dt), dt)
-
-
-def exo_like(sig: Signals, x: np.ndarray) -> np.ndarray:
-    """x (N,), a signal of the exo torque's kind on the flat's rows, filtered as `signals` filters τ_e and then as
-    a regressor column (`lp`): what a gain's column is when x stands in for τ_e."""
-    sos1, pad1 = _differentiation_filter(sig.cutoff, sig.dt)
-    return np.nan_to_num(sig.lp(_filtered(x[:, None], sig.runs, sos1, pad1, sig.dt)[0][:, 0]))
-
-
-def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
-    """Two zero-phase Butterworth low-passes (order 4), per trial and finite run. The first, at four times the
-    cutoff, only for differentiation: q̇, q̈ (and τ̇_e, τ̈_e) by central differences of the low-passed q (τ_e).
-    The second, at the cutoff, filters τ and every regressor column built from those signals (`Signals.lp`),
-    the same filter on both sides of the equation (parallel filtering): a nonlinear column such as the sign of
-    q̇ is then smoothed exactly as the torque's own friction part is — low-passing q̇ before taking its sign
-    would leave a friction-like misfit at every reversal, which a Stribeck term then takes."""
-    dt = float(flat.dt)
-    fc = min(float(cutoff_hz), 0.4 / dt)
-    sos1, pad1 = _differentiation_filter(fc, dt)
-    valid = flat.valid.numpy().astype(bool)
-    N, n = flat.q.shape
-    cols = {k: np.full((N, n), np.nan) for k in ("q", "qd", "qdd", "tau_e", "tau_e_d", "tau_e_dd")}
-    one = {k: np.full(N, np.nan) for k in ("f_v", "f_o", "x_cop")}
-    lag_of, runs_all, start = [], [], 0
-    for T in flat.lengths:
-        sl = slice(start, start + T)
-        runs = list(finite_runs(valid[sl]))
-        runs_all += [(start + a, start + b) for a, b in runs]
-        cols["q"][sl], cols["qd"][sl], cols["qdd"][sl] = _filtered(flat.q[sl].double().numpy(), runs, sos1, pad1, dt)
-        te = _filtered(flat.tau_e[sl].double().numpy(), runs, sos1, pad1, dt)
-        cols["tau_e"][sl], cols["tau_e_d"][sl], cols["tau_e_dd"][sl] = te
-        for k in one:
-            one[k][sl] = _filtered(getattr(flat, k)[sl].double().numpy()[:, None], runs, sos1, pad1, dt)[0][:, 0]
-        lag_of.append((start, T))
-        start += T
-    held = flat.held.numpy().astype(bool)
-    trial = flat.trial.numpy()
-    subject = np.array([flat.trial_meta[i]["subject"] for i in range(len(flat.lengths))])[trial]
-    sig = Signals(**cols, **one, tau=None, tau_raw=flat.tau.double().numpy(), mass=flat.mass.double().numpy(),
-                  ok=valid, train=None, held=None, trial=trial, subject=subject, joint_types=tuple(flat.joint_types),
-                  dt=dt, lag_of=lag_of, cutoff=fc, runs=runs_all, sos=_design(fc, dt))
-    sig.tau = sig.lp(sig.tau_raw)
-    sig.ok = valid & np.isfinite(cols["q"]).all(1) & np.isfinite(sig.tau).all(1)
-    sig.train, sig.held = sig.ok & ~held, sig.ok & held
-    return sig
 
 
 # -- the parametric rigid-body base --------------------------------------------------------------------------

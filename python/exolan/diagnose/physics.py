@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..runio import jsonable
-from . import consistency, ident, stats, wls
+from . import consistency, ident, parallel_filter, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
 from .estimates import Z95, TermEstimate, ci_text as _ci_text, report_interval, term_estimate  # noqa: F401
 from .flat import exo_own
@@ -141,11 +141,11 @@ def _held_gain(e_without: np.ndarray, e_with: np.ndarray, n_boot: int, seed: int
     return dict(gain=float(b["mean"]), ci=[float(b["ci"][0]), float(b["ci"][1])])
 
 
-def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
+def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = parallel_filter.CUTOFF_HZ,
           max_delay: float = 0.1) -> PhysicsResult:
     """The parametric base fitted per joint (weighted) and the family of candidates; no selection yet."""
     t0 = time.time()
-    sig = ident.signals(flat, cutoff_hz)
+    sig = parallel_filter.signals(flat, cutoff_hz)
     X_raw, names = ident.base_columns(sig.q, sig.qd, sig.qdd, sig)
     Xb = sig.lp(X_raw)
     ctx = dict(max_delay=max_delay, base_theta={}, base_raw=X_raw)
@@ -216,7 +216,7 @@ def single_term(res: PhysicsResult, effect: str, j: int, joint: str) -> TermEsti
     return term_estimate(prob, prob.fit([effect]), effect, joint)
 
 
-def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = ident.CUTOFF_HZ,
+def identify(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = parallel_filter.CUTOFF_HZ,
              max_delay: float = 0.1, n_boot: int = 400, log=None) -> PhysicsResult:
     """Physics first (module docstring): the parametric base and forward selection of the candidate terms."""
     return select(setup(flat, effects, joint_ids, alpha, cutoff_hz, max_delay), flat, n_boot, log)
@@ -306,7 +306,7 @@ def own_variation(prob: ident.JointProblem, flat, accepted: list, te: TermEstima
     on the same side of no effect."""
     j, key = prob.j, (te.effect, None)
     whole = prob.col(te.effect, None)
-    prob._cols[key] = ident.exo_like(prob.sig, exo_own(flat, j).tau_e[:, j].double().numpy())
+    prob._cols[key] = parallel_filter.exo_like(prob.sig, exo_own(flat, j).tau_e[:, j].double().numpy())
     try:
         o = term_estimate(prob, prob.fit(accepted + [te.effect]), te.effect, te.joint)
     finally:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import ident, physics_subjects
+from . import ident, parallel_filter, physics_subjects
 from .physics import PhysicsResult, final_fit, term_estimate
 
 
@@ -16,7 +16,7 @@ def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: l
     prob = res._probs[j]
     sig = prob.sig
     r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
-    sig_r = ident.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
+    sig_r = parallel_filter.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
     sig_r.tau[:, j] = r
     p = ident.JointProblem(sig_r, j, np.ones((len(r), 1)), ["const"], prob.ctx)
     p.w = prob.w
