@@ -202,6 +202,7 @@ class JointProblem:
         self.train, self.held = rows & sig.train & moving, rows & sig.held
         self.w = np.ones(len(self.y))
         self._cols: dict = {}
+        self._grids: dict = {}      # effect -> its grid's ν (`col` caches there only)
         self.split: dict = {}       # effect -> row masks: the term's column split by subject (`physics.select`)
 
     @property
@@ -239,10 +240,20 @@ class JointProblem:
         return wls.hac_partialled(A, Z, X.shape[1])
 
     def col(self, effect: str, nu):
+        """A term's column (filtered as τ) at ν; cached at ν on the term's grid only (a refined ν is one of many)."""
         key = (effect, None if nu is None else float(nu))
-        if key not in self._cols:
-            self._cols[key] = np.nan_to_num(self.sig.lp(TERMS[effect].column(self.sig, self.j, nu, self.ctx)))
-        return self._cols[key]
+        c = self._cols.get(key)
+        if c is None:
+            c = np.nan_to_num(self.sig.lp(TERMS[effect].column(self.sig, self.j, nu, self.ctx)))
+            if nu is None or float(nu) in self._grid_of(effect):
+                self._cols[key] = c
+        return c
+
+    def _grid_of(self, effect: str) -> set:
+        if effect not in self._grids:
+            g = TERMS[effect].grid
+            self._grids[effect] = set() if g is None else {float(v) for v in g(self.sig, self.j, self.ctx)}
+        return self._grids[effect]
 
     def _columns(self, eff: str, c: np.ndarray) -> list:
         """A linear term's columns with their names: one, or one per subject where the term is split."""
@@ -307,18 +318,14 @@ class JointProblem:
         """ν of `e` between the grid's neighbours of its grid optimum (bounded Brent on the training SSE): a grid
         step is no resolution of the data, and a linear rival fits the step's error (a delay 2.3 ms off its grid
         point lost to a negative damping, `tests/test_diagnose_drive.py`). An optimum at an edge of the grid stays
-        there: it is not identified (`physics._p`). Off-grid columns leave the cache but the chosen one."""
+        there: it is not identified (`physics._p`)."""
         i = int(np.argmin(np.abs(np.asarray(grid, dtype=float) - float(nu[e]))))
         if i == 0 or i == len(grid) - 1:
             return nu[e]
-        cached = set(self._cols)
         sse = lambda v: self.sse(terms, dict(nu, **{e: float(v)}))
         lo, hi = float(grid[i - 1]), float(grid[i + 1])
         r = optimize.minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": (hi - lo) * 1e-3})
-        best = float(r.x) if r.fun < sse(nu[e]) else nu[e]
-        for key in set(self._cols) - cached - {(e, float(best))}:
-            del self._cols[key]
-        return best
+        return float(r.x) if r.fun < sse(nu[e]) else nu[e]
 
     def _intervals(self, f: Fit, X, off):
         """HAC SE of every term's parameter; fixed terms (a delay) through their linearisation in ν."""
