@@ -202,7 +202,7 @@ class JointProblem:
         self.train, self.held = rows & sig.train & moving, rows & sig.held
         self.w = np.ones(len(self.y))
         self._cols: dict = {}
-        self._grids: dict = {}      # effect -> its grid's ν (`col` caches there only)
+        self._grids: dict = {}      # effect -> its grid of ν (`grid`; `col` caches there only)
         self.split: dict = {}       # effect -> row masks: the term's column split by subject (`physics.select`)
 
     @property
@@ -245,14 +245,15 @@ class JointProblem:
         c = self._cols.get(key)
         if c is None:
             c = np.nan_to_num(self.sig.lp(TERMS[effect].column(self.sig, self.j, nu, self.ctx)))
-            if nu is None or float(nu) in self._grid_of(effect):
+            if nu is None or float(nu) in (self.grid(effect) or ()):
                 self._cols[key] = c
         return c
 
-    def _grid_of(self, effect: str) -> set:
+    def grid(self, effect: str) -> list | None:
+        """The term's grid of ν on this joint's data (None: linear), made once."""
         if effect not in self._grids:
             g = TERMS[effect].grid
-            self._grids[effect] = set() if g is None else {float(v) for v in g(self.sig, self.j, self.ctx)}
+            self._grids[effect] = None if g is None else [float(v) for v in g(self.sig, self.j, self.ctx)]
         return self._grids[effect]
 
     def _columns(self, eff: str, c: np.ndarray) -> list:
@@ -297,7 +298,7 @@ class JointProblem:
     def fit(self, terms: list, intervals: bool = True) -> Fit:
         """Fit the base plus `terms`, ν of nonlinear terms by grid (coordinate-wise, two passes)."""
         nu = {e: None for e in terms}
-        grids = {e: TERMS[e].grid(self.sig, self.j, self.ctx) for e in terms if TERMS[e].grid is not None}
+        grids = {e: self.grid(e) for e in terms if TERMS[e].grid is not None}
         for e in grids:
             nu[e] = grids[e][len(grids[e]) // 2]
         for _ in range(2 if len(grids) > 1 else 1):

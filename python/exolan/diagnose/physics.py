@@ -105,9 +105,8 @@ def _p(prob: ident.JointProblem, f: ident.Fit, eff: str) -> float:
         p = min(1.0, len(th) * min(ident.p_value(eff, a, b) for a, b in zip(th, se)))
     else:
         p = ident.p_value(eff, f.est[eff], f.se[eff])
-    g = ident.TERMS[eff].grid
-    if g is not None:
-        grid = g(prob.sig, prob.j, prob.ctx)
+    grid = prob.grid(eff)
+    if grid is not None:
         if f.nu[eff] in (grid[0], grid[-1]):
             return 1.0
         if not ident.TERMS[eff].fixed:
@@ -124,10 +123,9 @@ def _z(f: ident.Fit, eff: str) -> float:
 
 def _edge_text(prob: ident.JointProblem, f: ident.Fit, eff: str) -> str | None:
     """Why a nonlinear parameter at an edge of its grid is not identified, or None."""
-    g = ident.TERMS[eff].grid
-    if g is None:
+    grid = prob.grid(eff)
+    if grid is None:
         return None
-    grid = g(prob.sig, prob.j, prob.ctx)
     if f.nu[eff] == grid[0]:
         return (f"not identified: its nonlinear parameter ends at the smallest value searched ({grid[0]:.3g})"
                 + (", the Coulomb term's own smoothing ε" if eff == "stribeck_friction" else ""))
