@@ -135,6 +135,8 @@ WORLD_CASES = {
     # a gain is identified only by the controller's own variation (the base absorbs the rest, a copy of the joint
     # torque): 1.25 was below this world's detection limit, 2.0 was found at 1.97 (measured, notes on issue 7)
     "exo_gain": ("torque_gain", "hip", (1.8, 2.5)),
+    # a play in the knee's transmission: the encoder holds while the limb crosses the gap after a reversal
+    "backlash": ("backlash", "knee", (0.02, 0.06)),
     "clean": None,
 }
 
@@ -319,7 +321,7 @@ def test_cli_diagnose_with_a_trained_run(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["knee_damping", "hip_coulomb", "exo_delay", "strap", "encoder_offset", "exo_gain",
-                                  "clean"])
+                                  "backlash", "clean"])
 def test_hidden_effect_worlds(tmp_path, case):
     # the gain case is judged against the limits measured by injection (off by default: refits only when asked)
     _check_world(tmp_path, case, **WORLD_SETTINGS, **(dict(inject_gain=True) if case == "exo_gain" else {}))

@@ -1,4 +1,5 @@
-"""Trial signals for the extended model: exo-torque lag tables and derivatives, the recorded velocity's filter."""
+"""Trial signals for the extended model: exo-torque lag tables and derivatives, the recorded velocity's filter,
+the side of a backlash gap (`gap_side`)."""
 from __future__ import annotations
 
 from typing import Sequence
@@ -107,3 +108,105 @@ def exo_derivatives(tau_e: np.ndarray, dt: float, window: int = 9,
     d1 = savgol_filter(x, w, 3, deriv=1, delta=dt, axis=0)
     d2 = savgol_filter(x, w, 3, deriv=2, delta=dt, axis=0)
     return d1, d2
+
+
+def gap_side(q: np.ndarray, dt: float, k: float = 4.0) -> np.ndarray:
+    """(T, n) the side of a backlash gap that the limb rests on, read off one trial's raw measured angles (T, n):
+    +1 after a rise, −1 after a fall, so that the limb's angle is q + (w/2) s for a backlash of width w.
+
+    A play operator holds the measured angle while the limb crosses the gap after a reversal. A held stretch is a
+    run of at least two steps within k √2 σ, σ the encoder noise (the robust SD of the angle less its low-pass);
+    where it ends in a reversal the limb's path through the gap is taken at constant acceleration, s = ±(1 −
+    2 (t/T)²), since it starts at rest. Read off the raw angle the gap's ends are sharp to a sample; read off a
+    filtered velocity they are blurred, and the inertial shift a backlash makes came out 30 % short that way
+    (docs/DIAGNOSIS.md, "Backlash"). Elsewhere s is the sign of the low-passed angle's slope."""
+    from scipy.signal import butter
+
+    x = np.asarray(q, dtype=np.float64)
+    out = np.zeros_like(x)
+    sos = butter(4, min(0.2 / dt, 50.0), fs=1.0 / dt, output="sos")
+    for j in range(x.shape[1]):
+        for a, b in finite_runs(np.isfinite(x[:, j])):
+            if b - a > 30:
+                out[a:b, j] = _side_of_run(x[a:b, j], sos, k)
+    return out
+
+
+def _side_of_run(x: np.ndarray, sos, k: float, m: int = 6) -> np.ndarray:
+    from scipy.signal import sosfiltfilt
+
+    smooth = sosfiltfilt(sos, x)
+    r = x - smooth
+    sigma = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    held = np.abs(np.diff(x)) <= k * np.sqrt(2.0) * sigma         # the step i -> i + 1 within the noise
+    # the side between held stretches: the smoothed slope's sign, kept where the slope is within its own noise
+    slope = np.gradient(smooth)
+    gain = np.std(np.gradient(sosfiltfilt(sos, np.random.default_rng(0).standard_normal(4096))))
+    sure = np.abs(slope) > k * sigma * gain
+    idx = np.maximum.accumulate(np.where(sure, np.arange(len(slope)), -1))
+    first = np.sign(slope[int(np.argmax(sure))]) if sure.any() else 1.0
+    s = np.where(idx >= 0, np.sign(slope[np.maximum(idx, 0)]), first)
+    n = len(x)
+    for i, j in _held_runs(x, held, k * sigma):
+        if j - i >= 2 and i >= m and j + m < n:
+            t0, before, t1, after = _gap_ends(x, i, j, m)
+            lo, hi = min(int(np.floor(t0)), i), max(int(np.ceil(t1)) + 1, j + 1)
+            if before != 0 and after == -before:       # a reversal: the limb crosses the gap at constant acceleration
+                u = np.clip((np.arange(lo, hi, dtype=np.float64) - t0) / (t1 - t0), 0.0, 1.0)
+                s[lo:hi] = before * (1.0 - 2.0 * u ** 2)
+            else:                                       # a rest: the side it was reached from
+                s[i:hi] = s[i - 1]
+            while hi < n and not sure[hi]:              # until the slope is sure again, the side it left on
+                s[hi] = s[hi - 1]
+                hi += 1
+    return s
+
+
+def _held_runs(x: np.ndarray, held: np.ndarray, tol: float) -> list[tuple[int, int]]:
+    """[(i, j)]: stretches of samples i..j joined by held steps; two stretches a noise step or two apart whose
+    levels (medians) lie within `tol` of each other are one (a long gap's noise breaks it otherwise)."""
+    runs, i, n = [], 0, len(held)
+    while i < n:
+        if not held[i]:
+            i += 1
+            continue
+        j = i
+        while j < n and held[j]:
+            j += 1
+        runs.append((i, j))                 # steps i..j-1 held: samples i..j
+        i = j
+    out: list[tuple[int, int]] = []
+    for i, j in runs:
+        if out and i - out[-1][1] <= 2 and abs(np.median(x[i:j + 1]) - np.median(x[out[-1][0]:out[-1][1] + 1])) <= tol:
+            out[-1] = (out[-1][0], j)
+        else:
+            out.append((i, j))
+    return out
+
+
+def _gap_ends(x: np.ndarray, i: int, j: int, m: int, step: float = 0.25) -> tuple[float, float, float, float]:
+    """Around a held stretch [i, j]: where the measured angle stopped (the limb's reversal) and from which side
+    (+1: rising), and where it moved again (the limb at the gap's other side) and to which side, in fractional
+    samples. The stop is the knot of a level with a quadratic approach, y0 + c min(t − t0, 0)², the start the knot
+    of a level with a departure, y0 + b max(t − t1, 0) + c' max(t − t1, 0)², each by least squares profiled over
+    the knot (a noise threshold alone starts the gap where a slow approach comes within the noise, tens of ms
+    early at a slow reversal; a difference of a few samples reads the side off noise)."""
+    def knot(lo: int, hi: int, grid: np.ndarray, cols) -> tuple[float, np.ndarray]:
+        t = np.arange(lo, hi + 1, dtype=np.float64)
+        y = x[lo:hi + 1] - x[lo:hi + 1].mean()          # centred: the level's column stays well scaled
+        d = t[None, :] - grid[:, None]                   # (knots, samples): every knot's fit at once
+        A = np.stack([np.ones_like(d)] + [c(d) for c in cols], -1)
+        AtA = np.einsum("gtp,gtq->gpq", A, A) + 1e-12 * np.eye(A.shape[-1])
+        beta = np.linalg.solve(AtA, np.einsum("gtp,t->gp", A, y)[..., None])[..., 0]
+        sse = ((y[None, :] - np.einsum("gtp,gp->gt", A, beta)) ** 2).sum(1)
+        g = int(np.argmin(sse))
+        return float(grid[g]), beta[g]
+
+    t0, c0 = knot(i - m, j, np.arange(i - m, j + step / 2, step), [lambda d: np.minimum(d, 0.0) ** 2])
+    start = max(i, int(t0))
+    t1, c1 = knot(start, j + m, np.arange(start, j + m - 1 + step / 2, step),
+                  [lambda d: np.maximum(d, 0.0), lambda d: np.maximum(d, 0.0) ** 2])
+    before, after = -float(np.sign(c0[1])), float(np.sign(c1[1] + c1[2] * (j + m - t1)))
+    if t1 - t0 < 1.0:
+        t0, t1 = i - 0.5, j + 0.5
+    return t0, before, t1, after

@@ -14,6 +14,7 @@ the physics*, each with a parametrisation that enforces its physical sign:
 | torque_bias        | τ_rec += τ0                                            | free sign               |
 | torque_gain        | τ_rec += (1 − 1/k) τ_e,rec                             | k = e^{0.1 raw} > 0     |
 | strap_compliance   | physics at q_meas − τ_e,app / k (and its derivatives)  | 1/k = softplus(·) ≥ 0   |
+| backlash           | physics at q_meas + (w/2) s (and its derivatives)      | w = softplus(·) ≥ 0     |
 
 Because D is PSD and Fc, Fs ≥ 0, the dissipated power q̇ᵀ(D q̇ + Fc tanh(q̇/ε) + ...) is never negative:
 the extended model is passive — its energy ½ q̇ᵀ H q̇ + V never grows without input power
@@ -22,7 +23,8 @@ the extended model is passive — its energy ½ q̇ᵀ H q̇ + V never grows wit
 Sequences: the delay needs the history of the exoskeleton torque. Samples are rows (B, ·); the exo torque
 comes either as (B, n) (current sample) or as a history (B, K+1, n), column k = k steps earlier in the same
 trial, clamped at the trial's start (`lag_table(lengths, K)` gives the flat indices to gather it). The strap
-needs τ̇_e and τ̈_e, which the caller passes in the same form (`exo_derivatives` computes them per trial).
+needs τ̇_e and τ̈_e in the same form (`exo_derivatives`); a backlash the side of its gap, `side=(s, ṡ, s̈)` (`gap_side`),
+a sensor effect that the engine's export leaves out (the limb's dynamics are the base's; its width is metadata).
 """
 from __future__ import annotations
 
@@ -38,7 +40,7 @@ import torch.nn.functional as F
 from .exo_signals import exo_derivatives, lag_table, velocity_response  # noqa: F401 (re-exported)
 
 EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay",
-                    "encoder_offset", "torque_bias", "torque_gain", "strap_compliance")
+                    "encoder_offset", "torque_bias", "torque_gain", "strap_compliance", "backlash")
 # terms linear in their parameter, which can carry a size per subject (θ_u = θ e^{a_u})
 SIZEABLE = ("viscous_damping", "coulomb_friction", "stribeck_friction", "encoder_offset", "torque_bias",
             "strap_compliance")
@@ -60,6 +62,7 @@ _TO_RAW = {
     "torque_gain": ("gain_raw", lambda k: math.log(max(k, 1e-3)) / 0.1),
     # compliance 1/k in units of 0.01 rad/(N m): strap stiffnesses of 10..1000 N m/rad are O(0.01..1)
     "strap_compliance": ("compliance_raw", lambda k: _inv_softplus(max(1.0 / k / 0.01, 1e-4))),
+    "backlash": ("backlash_raw", lambda w: _inv_softplus(max(w / 0.01, 1e-4))),     # width in units of 0.01 rad
 }
 
 
@@ -198,6 +201,7 @@ class ExtendedModel(nn.Module):
         self.bias_raw = start("torque_bias", 0.0, _TO_RAW["torque_bias"][1])
         self.gain_raw = start("torque_gain", 1.0, _TO_RAW["torque_gain"][1])
         self.compliance_raw = start("strap_compliance", 1000.0, _TO_RAW["strap_compliance"][1])
+        self.backlash_raw = start("backlash", 1e-4, _TO_RAW["backlash"][1])
 
     def set_value(self, effect: str, j: int, value: float) -> None:
         """Set (effect, joint j)'s parameter to `value` in vocabulary units (strap: stiffness k). Damping sets
@@ -287,6 +291,10 @@ class ExtendedModel(nn.Module):
         """1/k in rad/(N m) (m/N for prismatic joints); 0 where no strap term is active."""
         return 0.01 * F.softplus(self.compliance_raw) * self.mask_strap_compliance
 
+    def backlash(self) -> torch.Tensor:
+        """The play's width w in rad (m for prismatic joints); 0 where no backlash term is active."""
+        return 0.01 * F.softplus(self.backlash_raw) * self.mask_backlash
+
     def physical(self, trial: int | None = None) -> dict[str, np.ndarray]:
         """Every parameter in the units of the effect vocabulary (DATA_LAYOUT.md), per joint; with `trial`, the
         values that act on that trial (a switched-off term neutral, a sized term at its subject's size)."""
@@ -309,6 +317,7 @@ class ExtendedModel(nn.Module):
                 "torque_bias": (self.torque_bias() * f("torque_bias")).cpu().numpy().copy(),
                 "torque_gain": (1.0 / (1.0 - a)).cpu().numpy().copy(),
                 "strap_compliance": _stiffness(c.cpu().numpy()),
+                "backlash": (self.backlash() * f("backlash")).cpu().numpy().copy(),
             }
 
     def without(self, terms: Iterable[tuple[str, int]]) -> "ExtendedModel":
@@ -370,8 +379,11 @@ class ExtendedModel(nn.Module):
         sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * x[:, 0]
         return sh(h), sh(hd), sh(hdd)
 
-    def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None, trial=None):
-        """Measured -> physical coordinates: remove the encoder offset and the strap deflection."""
+    def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None, trial=None, side=None):
+        """Measured -> physical coordinates: remove the encoder offset, the strap deflection and the backlash gap."""
+        if "backlash" in self.effects and side is not None:
+            h = 0.5 * self.backlash() * self.gate("backlash", trial)
+            q, qd, qdd = q + h * side[0], qd + h * side[1], (qdd + h * side[2] if qdd is not None else None)
         if "encoder_offset" in self.effects:
             q = q - self.encoder_offset() * self.gate("encoder_offset", trial)
         if "strap_compliance" in self.effects and tau_app is not None:
@@ -414,24 +426,24 @@ class ExtendedModel(nn.Module):
         return out
 
     # -- the model interface -----------------------------------------------------------------------
-    def inverse(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None, trial=None):
+    def inverse(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None, trial=None, side=None):
         """Predicted recorded total torque τ_rec (B, n).
 
         tau_e, tau_e_d, tau_e_dd: recorded exo torque and its smoothed derivatives, either (B, n) for the
         current sample or (B, K+1, n) histories (column k = k samples earlier, clamped at the trial start;
         `lag_table` builds the indices). The delay term needs the history. `trial` (B,): the rows' trial
-        indices, for gated (subject-specific) terms.
+        indices, for gated (subject-specific) terms. `side`: (s, ṡ, s̈) of a backlash gap (`gap_side`).
         """
-        return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd, trial)[0]
+        return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd, trial, side)[0]
 
-    def inverse_inertia(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None, trial=None):
+    def inverse_inertia(self, q, qd, qdd, z, f_v, tau_e=None, tau_e_d=None, tau_e_dd=None, trial=None, side=None):
         """(`inverse`, H): H(q, z) at the physical coordinates the base used, or None where the base does not
         expose its inertia (a fit's acceleration term reuses it instead of evaluating the network again)."""
         if tau_e is None:
             tau_e = torch.zeros_like(q)
         tau_now = self._hist(tau_e)[:, 0]
         tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd, trial)
-        qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd, trial)
+        qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd, trial, side)
         if hasattr(self.base, "inverse_inertia"):
             tau, H = self.base.inverse_inertia(qt, qdt, qddt, z, f_v)
         else:

@@ -118,6 +118,8 @@ def _save_ext(out: Path, res: dict) -> None:
     # subject-specific terms: the files hold their values, to apply for those users only
     who = _subject_terms(ext, flat) if ext.gated else None
     t = ext.ext_tensors()
+    if "backlash" in ext.effects:       # a sensor term: not in the engine's tensors (`export_extended`'s metadata)
+        t["ext.backlash"] = np.asarray(ext.physical()["backlash"], dtype=np.float64)
     if t:
         meta = {"format": "exolan-ext", "joint_names": str(list(flat.joints)), "coulomb_eps": str(ext.coulomb_eps)}
         if who:

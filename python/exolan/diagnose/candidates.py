@@ -4,12 +4,10 @@ Each candidate states what it means physically, the sign that physics allows, it
 model (DESIGN.md section 4) and its `kind`:
 
 - `finding`: a term a conservative Lagrangian cannot represent (dissipation, lag, compliance, recording
-  gain); it may be accepted when the decision rule passes.
+  gain, a backlash's hysteresis in the measured angle); it may be accepted when the decision rule passes.
 - `absorbable`: an effect a flexible conservative model represents by itself (a constant encoder offset is a
   change of coordinates of H and V; a constant torque bias is a linear potential; a payload changes H and
   V). It is reported as absorbable, never as a finding, whatever its held-out gain.
-- `not_modelled`: backlash (a hysteresis in the measured angle) has no term; it is confusable with Coulomb
-  friction and strap compliance and is reported as ambiguous when those explain something, never accepted.
 
 `neutral` is the parameter value meaning "no effect": identifiability asks that the parameter's confidence
 interval exclude it. `needs_exo`: the effect acts through the recorded exoskeleton torque and cannot be
@@ -140,6 +138,12 @@ def _f_strap(model, flat, idx, j):
                                     -flat.tau_e_dd[idx, j], 1e-4))]
 
 
+def _f_backlash(model, flat, idx, j):
+    # parameter = width w; the limb is at q + (w/2) s (and its derivatives), s the side of the gap (`gap_side`)
+    return [({}, _input_sensitivity(model, flat, idx, j, 0.5 * flat.side[idx, j], 0.5 * flat.side_d[idx, j],
+                                    0.5 * flat.side_dd[idx, j], 1e-3))]
+
+
 @dataclass(frozen=True)
 class Candidate:
     """One effect of the vocabulary and its own behaviour in the diagnosis: how its parameter is read off a
@@ -147,7 +151,7 @@ class Candidate:
     compliance, reported as k = 1/θ: `inverse`), bounded (`positive`, a delay by the largest delay searched:
     `bounded_by_max_delay`), which nulls it faces (`needs_exo`; a gain, which has no lag of its own, also at
     the controller's tracking lag and on its own variation: `lag_free`), which shape parameter it carries
-    (`shape`: Stribeck's vs), which effects it mimics without a term (`mimics`: backlash), which detection
+    (`shape`: Stribeck's vs), which detection
     limit warns that it reads short (`limit_key`) and how a known size of it is written into the recorded torque
     (`inject`: the detection limits by injection)."""
     effect: str
@@ -155,7 +159,7 @@ class Candidate:
     sign: str                     # the physically valid sign of the reported parameter
     unit_revolute: str
     unit_prismatic: str
-    kind: str                     # finding | absorbable | not_modelled
+    kind: str                     # finding | absorbable
     neutral: float                # parameter value of "no effect"
     needs_exo: bool = False
     positive: bool = False        # the parameter must be > neutral (dissipation, delay, stiffness)
@@ -164,7 +168,6 @@ class Candidate:
     lag_free: bool = False
     shape: str | None = None      # the init key of a nonlinear shape parameter fitted beside θ (Stribeck: vs)
     shape_default: float = 0.1
-    mimics: tuple = ()
     limit_key: str | None = None
     domain_lo: float = -float("inf")   # the reported parameter's physical domain lies above this (`sign`)
     start: Callable | None = field(default=None, compare=False, repr=False)      # (screen θ, screen) -> {value}
@@ -257,15 +260,18 @@ LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
     Candidate("payload", "mass added to a segment (changes inertia and gravity)", "m ≥ 0", "kg", "kg",
               "absorbable", 0.0),
     Candidate("backlash", "play of width w in the transmission: the encoder lags the limb by w/2 after a reversal",
-              "w ≥ 0", "rad", "m", "not_modelled", 0.0, mimics=("coulomb_friction", "strap_compliance")),
+              "w ≥ 0", "rad", "m", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
+              features=_f_backlash, theta=lambda m, j: (m.backlash_raw, lambda: float(m.backlash()[j]))),
 ]}
 
 # rival explanations the held-out data must separate before either is accepted. A strap and a torque gain:
 # the strap's deflection τ_e/k moves the coordinates at which the physics acts, so to first order it adds
 # −(∂τ̂/∂q) τ_e/k, a torque in proportion to the exo torque — a torque gain whose size follows the joint's
-# stiffness (measured: docs/DIAGNOSIS.md, "Measurements behind the code")
+# stiffness (measured: docs/DIAGNOSIS.md, "Measurements behind the code"). A backlash and Coulomb friction: both
+# change the torque in a step at every reversal
 CONFUSABLE = [("actuation_delay", "viscous_damping"), ("coulomb_friction", "stribeck_friction"),
-              ("actuation_delay", "strap_compliance"), ("torque_gain", "strap_compliance")]
+              ("actuation_delay", "strap_compliance"), ("torque_gain", "strap_compliance"),
+              ("coulomb_friction", "backlash")]
 
 # rivals one of which reduces to the other in a limit: an excess static friction that vanishes above vs,
 # Fs e^{−(q̇/vs)²} tanh(q̇/ε), is Coulomb friction as vs → ∞. Where held-out data cannot separate such a pair,
@@ -281,9 +287,9 @@ def nested_choice(group: list[dict]) -> dict | None:
             return e
     return None
 
-# effects fitted jointly with the model (payload and backlash have no term: reported by rule)
+# effects fitted jointly with the model (a payload has no term: reported by rule)
 FITTED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay", "torque_gain",
-          "strap_compliance", "encoder_offset", "torque_bias")
+          "strap_compliance", "encoder_offset", "torque_bias", "backlash")
 
 
 def rivals(effect: str) -> list[str]:

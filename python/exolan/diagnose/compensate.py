@@ -25,7 +25,7 @@ from .settings import Settings
 RAW = {"viscous_damping": ("damping_diag",), "coulomb_friction": ("coulomb_raw",),
        "stribeck_friction": ("stribeck_fs_raw", "stribeck_vs_raw"), "actuation_delay": ("delay_raw",),
        "encoder_offset": ("offset_raw",), "torque_bias": ("bias_raw",), "torque_gain": ("gain_raw",),
-       "strap_compliance": ("compliance_raw",)}
+       "strap_compliance": ("compliance_raw",), "backlash": ("backlash_raw",)}
 
 
 class _NoBase(torch.nn.Module):
@@ -40,16 +40,18 @@ def terms_model(flat: Flat, terms: list, init: dict, max_delay: float) -> Extend
 @torch.no_grad()
 def data(flat: Flat, terms: list, init: dict, max_delay: float) -> Flat:
     """A copy of `flat` with the terms removed: the applied exo torque in place of the recorded one (a delay), the
-    physical coordinates in place of the measured ones (a strap's deflection, an encoder offset), the torque the
-    limb feels in place of the recorded one (friction, a bias, a gain). Everything else (the split, the weights,
-    the other leg's signals) is shared; the fit weights are left to the base fitted on the copy."""
+    physical coordinates in place of the measured ones (a strap's deflection, an encoder offset, a backlash), the
+    torque the limb feels in place of the recorded one (friction, a bias, a gain). Everything else (the split, the
+    weights, the other leg's signals) is shared; the fit weights are left to the base fitted on the copy."""
     m = terms_model(flat, terms, init, max_delay).to(torch.float64)
     rows = torch.arange(flat.q.shape[0])
     d64 = lambda x: x.to(torch.float64)
     hist = [d64(x) for x in flat.exo_hist(rows)]
     tau_now = hist[0][:, 0]
     app, app_d, app_dd = m.applied_exo(*hist, trial=flat.trial)
-    q, qd, qdd = m.true_state(d64(flat.q), d64(flat.qd), d64(flat.qdd), app, app_d, app_dd, trial=flat.trial)
+    side = tuple(d64(x) for x in (flat.side, flat.side_d, flat.side_dd)) if flat.side is not None else None
+    q, qd, qdd = m.true_state(d64(flat.q), d64(flat.qd), d64(flat.qdd), app, app_d, app_dd, trial=flat.trial,
+                              side=side)
     tau = d64(flat.tau) - m.friction(qd, trial=flat.trial) - m.recording_terms(tau_now, app, trial=flat.trial)
     like = lambda x, ref: torch.where(torch.isfinite(ref), x.to(ref.dtype), ref)     # keep the gaps as they were
     return replace(flat, q=like(q, flat.q), qd=like(qd, flat.qd), qdd=like(qdd, flat.qdd), tau=like(tau, flat.tau),

@@ -3,6 +3,7 @@ Rust engine's weight format (`to_exo_model`, `export_extended`)."""
 from __future__ import annotations
 
 import copy
+import json
 
 import torch
 from torch import nn
@@ -89,5 +90,11 @@ def export_extended(ext: ExtendedModel, path, z: torch.Tensor, joint_names=None,
                           f"({float(ext.base.cop_ref) * COP_UNIT:.3f} m)" if getattr(ext.base, "lim_cop", False)
                           else "") +
                          "; this file holds the rest of the model")
+    if "backlash" in ext.effects:       # a sensor effect: the engine runs the limb, a controller corrects its angles
+        w = twin.physical()["backlash"]
+        names = list(joint_names) if joint_names is not None else [str(j) for j in range(ext.n)]
+        md["sensor_backlash"] = json.dumps({names[j]: float(w[j]) for j in ext.effects["backlash"]})
+        md["sensor_backlash_note"] = ("play width w (rad or m) per joint: the limb is at q_measured + (w/2) s, s = +1 "
+                                      "after a rise and -1 after a fall; the engine's dynamics are the limb's")
     md.update(meta or {})
     return export(twin, path, meta=md), twin

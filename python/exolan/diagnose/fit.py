@@ -34,8 +34,12 @@ def _inputs(model, base, flat: Flat, b: torch.Tensor) -> tuple:
 
 
 def _gate_kw(model, flat: Flat, b: torch.Tensor) -> dict:
-    """`trial=` for a model with subject-specific (gated) terms: they act on their own trials only."""
-    return {"trial": flat.trial[b]} if getattr(model, "gated", ()) else {}
+    """`trial=` for a model with subject-specific (gated) terms: they act on their own trials only; `side=` for a
+    backlash term (the side of its gap and its derivatives at rows b)."""
+    kw = {"trial": flat.trial[b]} if getattr(model, "gated", ()) else {}
+    if "backlash" in getattr(model, "effects", {}):
+        kw["side"] = (flat.side[b], flat.side_d[b], flat.side_dd[b])
+    return kw
 
 
 def _forward(model, base, flat: Flat, b: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from ..data import DataError, savgol_window
-from ..extensions import exo_derivatives, lag_table, velocity_response
+from ..exo_signals import exo_derivatives, gap_side, lag_table, velocity_response
 
 DTYPE = torch.float32   # diagnosis fits run in float32 (speed); export converts to float64
 
@@ -53,6 +53,9 @@ class Flat:
     tau_scale: np.ndarray = field(default_factory=lambda: np.ones(1))   # per-joint std of τ/m (train)
     qdd_scale: np.ndarray = field(default_factory=lambda: np.ones(1))   # per-joint std of q̈ (train)
     weight: torch.Tensor | None = None  # (N, n) fit weight per sample and joint (`misfit_weights`); None: all 1
+    side: torch.Tensor | None = None    # (N, n) the side of a backlash gap the limb rests on (`gap_side`)
+    side_d: torch.Tensor | None = None  # its derivatives, as the measured q̇ and q̈ would show them
+    side_dd: torch.Tensor | None = None
 
     def forces(self, idx) -> torch.Tensor:
         """The insole input of the models at rows idx: f_v (B,), or with a partner (B, 11): [f_v, f_v,other/(M g),
@@ -168,7 +171,7 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
     rng = np.random.default_rng(seed)
     K = int(math.ceil(max_delay / dt)) + 1
     cols = {k: [] for k in ("q", "qd", "qdd", "tau", "tau_e", "tau_e_d", "tau_e_dd", "f_v", "x_cop", "mass", "valid",
-                            "trial", "segment", "held")}
+                            "trial", "segment", "held", "side", "side_d", "side_dd")}
     seg_base = 0
     lengths, meta = [], []
     # the strap's q̇/q̈ correction goes through the measured velocity's own filter and the reader's q̈ filter
@@ -188,6 +191,9 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
         cols["q"].append(np.asarray(t.q)); cols["qd"].append(np.asarray(t.qd)); cols["qdd"].append(np.asarray(t.qdd))
         cols["tau"].append(np.asarray(t.tau)); cols["tau_e"].append(np.nan_to_num(tau_e))
         cols["tau_e_d"].append(d1); cols["tau_e_dd"].append(d2); cols["f_v"].append(np.nan_to_num(f_v))
+        side = gap_side(np.asarray(t.q, dtype=np.float64), dt)     # a backlash's shift, through the same filters
+        s1, s2 = exo_derivatives(side, dt, response=v_resp, qdd_window=savgol_window(dt))
+        cols["side"].append(side); cols["side_d"].append(s1); cols["side_dd"].append(s2)
         cols["x_cop"].append(_x_cop(t, T))
         cols["mass"].append(np.full(T, float(t.mass))); cols["valid"].append(valid)
         cols["trial"].append(np.full(T, i)); cols["segment"].append(seg + seg_base); cols["held"].append(held)
@@ -220,7 +226,8 @@ def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_dela
                 lag=torch.as_tensor(lag_table(lengths, K)), lengths=lengths, joints=joints, joint_types=jtypes,
                 dt=dt, trial_meta=meta, has_exo=bool(np.abs(cat["tau_e"]).max() > 0),
                 has_insole=bool(np.abs(cat["f_v"]).max() > 0),
-                has_partner=bool(partners == len(trials) and np.abs(cat["f_o"]).max() > 0))
+                has_partner=bool(partners == len(trials) and np.abs(cat["f_o"]).max() > 0),
+                side=f("side"), side_d=f("side_d"), side_dd=f("side_dd"))
     tr = flat.index("train")
     s = (flat.tau[tr] / flat.mass[tr, None]).std(0).numpy()
     flat.tau_scale = np.where(s > 1e-9, s, 1.0)

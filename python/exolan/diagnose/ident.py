@@ -29,6 +29,7 @@ from scipy import stats as sps
 from ..extensions import COULOMB_EPS
 from . import wls
 from .parallel_filter import Signals
+from .shift import ShiftBasis, backlash_col, backlash_grid
 
 SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
 
@@ -111,6 +112,7 @@ class Term:
     sided: str = "greater"          # the test of θ against its neutral value: greater | two-sided
     pole: float | None = None       # θ where the reported parameter goes to infinity (a monotone map on each side)
     own_variation: bool = False     # its column is the exo torque itself: asked on the controller's own variation too
+    shift: bool = False             # ν moves joint j's coordinates by (ν/2) s: the base is refitted at each ν (`shift`)
 
     def value(self, theta, nu):
         return self.report(theta, nu) if self.report is not None else theta
@@ -169,6 +171,7 @@ TERMS: dict[str, Term] = {t.effect: t for t in [
     Term("actuation_delay", _delay_col, grid=_delay_grid, fixed=True,
          dcol=lambda sig, j, nu: _delayed(sig.tau_e_d[:, j], sig, nu)),
     Term("strap_compliance", _strap_col, report=lambda th, nu: 1.0 / th if th > 0 else math.inf, pole=0.0),
+    Term("backlash", backlash_col, grid=backlash_grid, fixed=True, shift=True),
 ]}
 
 
@@ -191,8 +194,13 @@ class Fit:
 class JointProblem:
     """Weighted LS of joint j's torque equation on the training rows; the base regressor built once."""
 
-    def __init__(self, sig: Signals, j: int, X_base: np.ndarray, base_names: list, ctx: dict):
+    def __init__(self, sig: Signals, j: int, X_base: np.ndarray, base_names: list, ctx: dict, shiftable: bool = True):
+        """`shiftable`: X_base is `base_columns` of the signals (a shift term refits it in moved coordinates);
+        False for another base (a constant), where a shift term enters linearised (`shift.backlash_col`)."""
         self.sig, self.j, self.ctx = sig, j, ctx
+        self._shiftable = shiftable and sig.side is not None
+        self._shift: ShiftBasis | None = None
+        self._at: tuple = (None, None)      # (u, X(u)): the last shifted design
         self.Xb, self.base_names = X_base, base_names
         self.y = sig.tau[:, j]
         rows = sig.ok & np.isfinite(X_base).all(1)
@@ -212,26 +220,53 @@ class JointProblem:
 
     @w.setter
     def w(self, w: np.ndarray):
-        self._w, self._qr = w, None
+        self._w, self._qr = w, {}
+        if getattr(self, "_shift", None) is not None:
+            self._shift.forget()
 
-    def _base(self) -> wls.BaseQR:
-        """The weighted base on the training rows, factorised once per weighting."""
-        if self._qr is None:
-            self._qr = wls.BaseQR(self.Xb[self.train], np.sqrt(self.w[self.train]))
-        return self._qr
+    def _u(self, terms: list, nu: dict) -> float:
+        """The coordinate shift u = ν/2 of a shift term among `terms` (0: none, or the base cannot move)."""
+        if self._shiftable:
+            for e in terms:
+                if TERMS[e].shift and nu.get(e) is not None:
+                    return 0.5 * float(nu[e])
+        return 0.0
 
-    def _wls(self, X: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Coefficients of the weighted LS fit of z on X (training rows; its first columns the base)."""
+    def _basis(self) -> ShiftBasis:
+        if self._shift is None:
+            h = 0.25 * min(min(self.grid(e)) for e in TERMS if TERMS[e].shift)
+            self._shift = ShiftBasis(self.sig, self.j, self.Xb, h, base_columns)
+        return self._shift
+
+    def _X(self, u: float) -> np.ndarray:
+        """The base's design at the shift u (the measured coordinates at 0); the last shifted one kept."""
+        if u == 0.0:
+            return self.Xb
+        if self._at[0] != u:
+            self._at = (u, self._basis().at(u))
+        return self._at[1]
+
+    def _base(self, u: float = 0.0) -> wls.BaseQR:
+        """The weighted base on the training rows at the shift u, factorised once per weighting (the measured
+        coordinates' and the last shifted one's kept)."""
+        qr = self._qr.get(u)
+        if qr is None:
+            self._qr = {k: v for k, v in self._qr.items() if k == 0.0}
+            qr = self._qr[u] = wls.BaseQR(self._X(u)[self.train], np.sqrt(self.w[self.train]))
+        return qr
+
+    def _wls(self, X: np.ndarray, z: np.ndarray, u: float = 0.0) -> np.ndarray:
+        """Coefficients of the weighted LS fit of z on X (training rows; its first columns the base at u)."""
         sw = np.sqrt(self.w[self.train])
-        return wls.fit(self._base(), X[:, len(self.base_names):] * sw[:, None], z * sw)
+        return wls.fit(self._base(u), X[:, len(self.base_names):] * sw[:, None], z * sw)
 
-    def _hac(self, X: np.ndarray, z: np.ndarray, sub: list) -> tuple:
+    def _hac(self, X: np.ndarray, z: np.ndarray, sub: list, u: float = 0.0) -> tuple:
         """HAC coefficients and SEs of the term columns `sub` of the weighted fit of z on X (training rows; its
         first columns the base, partialled out by its factorisation; any other term columns by their own)."""
         nb = len(self.base_names)
         assert min(sub, default=nb) >= nb, "only term columns have intervals here"
         sw = np.sqrt(self.w[self.train])
-        qr = self._base()
+        qr = self._base(u)
         A, Z = qr.residual(X[:, sub] * sw[:, None]), qr.residual(z * sw)
         other = [i for i in range(nb, X.shape[1]) if i not in sub]
         if other:
@@ -244,7 +279,9 @@ class JointProblem:
         key = (effect, None if nu is None else float(nu))
         c = self._cols.get(key)
         if c is None:
-            c = np.nan_to_num(self.sig.lp(TERMS[effect].column(self.sig, self.j, nu, self.ctx)))
+            t = TERMS[effect]
+            c = t.column(self.sig, self.j, nu, self.ctx)
+            c = c if t.shift else np.nan_to_num(self.sig.lp(c))       # a shift's linearisation is filtered already
             if nu is None or float(nu) in (self.grid(effect) or ()):
                 self._cols[key] = c
         return c
@@ -262,9 +299,15 @@ class JointProblem:
             return [(f"{eff}#{k}", c * m) for k, m in enumerate(self.split[eff])]
         return [(eff, c)]
 
+    def _moves(self, eff: str) -> bool:
+        """A shift term that moves the base's coordinates here (no column of its own)."""
+        return TERMS[eff].shift and self._shiftable
+
     def _design(self, terms: list, nu: dict):
-        X, names, offset = [self.Xb], list(self.base_names), np.zeros(len(self.y))
+        X, names, offset = [self._X(self._u(terms, nu))], list(self.base_names), np.zeros(len(self.y))
         for eff in terms:
+            if self._moves(eff):
+                continue
             c = self.col(eff, nu.get(eff))
             if TERMS[eff].fixed:
                 offset += c
@@ -273,9 +316,9 @@ class JointProblem:
                     X.append(ck[:, None]); names.append(name)
         return np.concatenate(X, 1), names, offset
 
-    def _partial(self, v: np.ndarray) -> np.ndarray:
-        """v (training rows, weighted) less its projection on the weighted base."""
-        return self._base().residual(v)
+    def _partial(self, v: np.ndarray, u: float = 0.0) -> np.ndarray:
+        """v (training rows, weighted) less its projection on the weighted base at the shift u."""
+        return self._base(u).residual(v)
 
     def sse(self, terms: list, nu: dict) -> float:
         """Weighted training SSE of the base plus `terms` at ν (the base partialled out: a small LS)."""
@@ -283,15 +326,18 @@ class JointProblem:
         sw = np.sqrt(self.w[tr])
         off = np.zeros(int(tr.sum()))
         cols = []
+        u = self._u(terms, nu)
         for eff in terms:
+            if self._moves(eff):
+                continue
             c = self.col(eff, nu.get(eff))
             if TERMS[eff].fixed:
                 off += c[tr]
             else:
                 cols += [ck[tr] for _, ck in self._columns(eff, c)]
-        rz = self._partial((self.y[tr] - off) * sw)
+        rz = self._partial((self.y[tr] - off) * sw, u)
         if cols:
-            Cz = self._partial(np.stack(cols, 1) * sw[:, None])
+            Cz = self._partial(np.stack(cols, 1) * sw[:, None], u)
             rz = rz - Cz @ np.linalg.lstsq(Cz, rz, rcond=None)[0]
         return float(rz @ rz)
 
@@ -303,30 +349,56 @@ class JointProblem:
             nu[e] = grids[e][len(grids[e]) // 2]
         for _ in range(2 if len(grids) > 1 else 1):
             for e, g in grids.items():
-                sse = [self.sse(terms, dict(nu, **{e: v})) for v in g]
-                nu[e] = g[int(np.argmin(sse))]
+                sse = self._profile(terms, nu, e)
+                nu[e] = g[int(np.argmin([sse(v) for v in g]))]
         for e, g in grids.items():
-            nu[e] = self._refine(terms, nu, e, g)
+            nu[e] = self._refine(self._profile(terms, nu, e), nu[e], g)
         X, names, off = self._design(terms, nu)
         tr = self.train
-        th = self._wls(X[tr], (self.y - off)[tr])
+        th = self._wls(X[tr], (self.y - off)[tr], self._u(terms, nu))
         f = Fit(terms=list(terms), theta=th, names=names, nu=nu, pred=X @ th + off)
         if intervals and terms:
             self._intervals(f, X, off)
         return f
 
-    def _refine(self, terms: list, nu: dict, e: str, grid: list) -> float:
+    def _profile(self, terms: list, nu: dict, e: str):
+        """ν -> the training SSE with `e` at ν and every other term at `nu`. A shift term's by its Gram profile
+        (`shift.Profile`: the base refitted at every ν without a factorisation of the rows)."""
+        if not self._moves(e):
+            return lambda v: self.sse(terms, dict(nu, **{e: float(v)}))
+        off, cols = np.zeros(len(self.y)), []
+        for x in terms:
+            if x == e or self._moves(x):
+                continue
+            c = self.col(x, nu.get(x))
+            if TERMS[x].fixed:
+                off = off + c
+            else:
+                cols += [ck for _, ck in self._columns(x, c)]
+        C = np.stack(cols, 1) if cols else np.zeros((len(self.y), 0))
+        prof = self._basis().profile(self.train, self.w, self.y - off, C)
+        return lambda v: prof(0.5 * float(v))
+
+    def _refine(self, sse, nu_e: float, grid: list) -> float:
         """ν of `e` between the grid's neighbours of its grid optimum (bounded Brent on the training SSE): a grid
         step is no resolution of the data, and a linear rival fits the step's error (a delay 2.3 ms off its grid
         point lost to a negative damping, `tests/test_diagnose_drive.py`). An optimum at an edge of the grid stays
         there: it is not identified (`physics._p`)."""
-        i = int(np.argmin(np.abs(np.asarray(grid, dtype=float) - float(nu[e]))))
+        i = int(np.argmin(np.abs(np.asarray(grid, dtype=float) - float(nu_e))))
         if i == 0 or i == len(grid) - 1:
-            return nu[e]
-        sse = lambda v: self.sse(terms, dict(nu, **{e: float(v)}))
+            return nu_e
         lo, hi = float(grid[i - 1]), float(grid[i + 1])
         r = optimize.minimize_scalar(sse, bounds=(lo, hi), method="bounded", options={"xatol": (hi - lo) * 1e-3})
-        return float(r.x) if r.fun < sse(nu[e]) else nu[e]
+        return float(r.x) if r.fun < sse(nu_e) else nu_e
+
+    def dcol(self, e: str, f: Fit) -> np.ndarray:
+        """∂prediction/∂ν of a fixed term at `f` (filtered as τ): its linearisation, for intervals and trials."""
+        t = TERMS[e]
+        if self._moves(e):
+            return 0.5 * self._basis().derivative(0.5 * f.nu[e], f.theta[:len(self.base_names)])
+        if t.shift:
+            return self.ctx["shift_D"][self.j]
+        return np.nan_to_num(self.sig.lp(t.dcol(self.sig, self.j, f.nu[e])))
 
     def _intervals(self, f: Fit, X, off):
         """HAC SE of every term's parameter; fixed terms (a delay) through their linearisation in ν."""
@@ -334,7 +406,7 @@ class JointProblem:
         extra, which = [], []
         for e in f.terms:
             if TERMS[e].fixed:
-                extra.append(np.nan_to_num(self.sig.lp(TERMS[e].dcol(self.sig, self.j, f.nu[e])))[:, None])
+                extra.append(self.dcol(e, f)[:, None])
                 which.append(e)
         Xa = np.concatenate([X] + extra, 1) if extra else X
         r = self.y - f.pred
@@ -342,7 +414,8 @@ class JointProblem:
         lin = [f.names.index(n) for n in lin_names]
         sub = lin + list(range(X.shape[1], Xa.shape[1]))
         # the linearised model's residual regression: a Gauss-Newton step from the fit (zero for linear terms)
-        coef, se, L = self._hac(Xa[tr], r[tr] + (Xa[tr][:, lin] @ f.theta[lin] if lin else 0), sub)
+        coef, se, L = self._hac(Xa[tr], r[tr] + (Xa[tr][:, lin] @ f.theta[lin] if lin else 0), sub,
+                                self._u(f.terms, f.nu))
         parts: dict = {}
         for k, n in enumerate(lin_names + which):
             e = n.split("#")[0]
@@ -365,10 +438,10 @@ class JointProblem:
         X, names, off = self._design(f.terms, f.nu)
         k = names.index(effect)
         X = np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1)
-        tr = self.train
-        th = self._wls(X[tr], (self.y - off)[tr])
+        tr, u = self.train, self._u(f.terms, f.nu)
+        th = self._wls(X[tr], (self.y - off)[tr], u)
         sub = list(range(X.shape[1] - len(masks), X.shape[1]))
-        coef, se, L = self._hac(X[tr], (self.y - off)[tr], sub)
+        coef, se, L = self._hac(X[tr], (self.y - off)[tr], sub, u)
         return coef, se, Fit(terms=list(f.terms), theta=th, names=names, nu=f.nu, pred=X @ th + off, lags=L)
 
     def by_trial(self, f: Fit, effect: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -379,7 +452,7 @@ class JointProblem:
         X, names, off = self._design(f.terms, f.nu)
         t = TERMS[effect]
         if t.fixed:
-            col, center, keep = np.nan_to_num(self.sig.lp(t.dcol(self.sig, self.j, f.nu[effect]))), f.nu[effect], X
+            col, center, keep = self.dcol(effect, f), f.nu[effect], X
         else:       # the unsplit column: a subject split's columns are masked copies of it
             idx = [i for i, n in enumerate(names) if n.split("#")[0] == effect]
             col, center, keep = X[:, idx].sum(1), 0.0, np.delete(X, idx, axis=1)
@@ -388,7 +461,7 @@ class JointProblem:
                            if np.any(col[tr & (self.sig.trial == k)] != 0)], dtype=int)
         Xs = np.concatenate([keep] + [(col * (self.sig.trial == k))[:, None] for k in trials], 1)
         sub = list(range(keep.shape[1], Xs.shape[1]))
-        coef, se, _ = self._hac(Xs[tr], (self.y - off)[tr], sub)
+        coef, se, _ = self._hac(Xs[tr], (self.y - off)[tr], sub, self._u(f.terms, f.nu))
         return center + coef, se, trials
 
     def held_sq(self, f: Fit, rows: np.ndarray | None = None) -> np.ndarray:

@@ -40,6 +40,9 @@ class Signals:
     cutoff: float
     runs: list              # (start, stop) rows of every finite run
     sos: tuple              # the second (parallel) filter and its pad length
+    side: np.ndarray | None = None      # (N, n) the side of a backlash gap (`Flat.side`), filtered and differentiated
+    side_d: np.ndarray | None = None    # as q is: the limb's kinematics are q + (w/2) s and its derivatives
+    side_dd: np.ndarray | None = None
 
     def lp(self, x: np.ndarray) -> np.ndarray:
         """x (N,) or (N, k) low-passed with the parallel filter per finite run (NaN kept where it is)."""
@@ -94,6 +97,8 @@ def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
     valid = flat.valid.numpy().astype(bool)
     N, n = flat.q.shape
     cols = {k: np.full((N, n), np.nan) for k in ("q", "qd", "qdd", "tau_e", "tau_e_d", "tau_e_dd")}
+    if flat.side is not None:
+        cols.update({k: np.full((N, n), np.nan) for k in ("side", "side_d", "side_dd")})
     one = {k: np.full(N, np.nan) for k in ("f_v", "f_o", "x_cop")}
     lag_of, runs_all, start = [], [], 0
     for T in flat.lengths:
@@ -103,6 +108,9 @@ def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
         cols["q"][sl], cols["qd"][sl], cols["qdd"][sl] = _filtered(flat.q[sl].double().numpy(), runs, sos1, pad1, dt)
         te = _filtered(flat.tau_e[sl].double().numpy(), runs, sos1, pad1, dt)
         cols["tau_e"][sl], cols["tau_e_d"][sl], cols["tau_e_dd"][sl] = te
+        if flat.side is not None:
+            sd = _filtered(flat.side[sl].double().numpy(), runs, sos1, pad1, dt)
+            cols["side"][sl], cols["side_d"][sl], cols["side_dd"][sl] = sd
         for k in one:
             one[k][sl] = _filtered(getattr(flat, k)[sl].double().numpy()[:, None], runs, sos1, pad1, dt)[0][:, 0]
         lag_of.append((start, T))

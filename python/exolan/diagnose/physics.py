@@ -170,7 +170,7 @@ def setup(flat, effects, joint_ids, alpha: float = 0.05, cutoff_hz: float = para
             _strap_point(prob)
         probs[j], cur[j] = prob, f0
     cands = [(e, j) for e in effects if e in ident.TERMS for j in joint_ids
-             if flat.has_exo or not LIBRARY[e].needs_exo]
+             if (flat.has_exo or not LIBRARY[e].needs_exo) and (sig.side is not None or not ident.TERMS[e].shift)]
     res = PhysicsResult(alpha=alpha, family=len(cands), cutoff_hz=sig.cutoff)
     res._probs, res._fits, res._cands, res._joint_ids = probs, cur, cands, list(joint_ids)
     res._base_fits = dict(cur)          # each selection starts from the bare bases (`select` may run again)
@@ -327,6 +327,8 @@ def final_fit(res: PhysicsResult, flat, j: int, terms: list, n_boot: int) -> Non
     f, gains, withouts = _held_out_fit(res, prob, terms, flat.joints[j], j, n_boot)
     res._fits[j] = f
     for e in terms:
+        if ident.TERMS[e].shift:        # the learned residual's check sizes it linearised here (`shift.backlash_col`)
+            prob.ctx.setdefault("shift_D", {})[j] = prob.dcol(e, f)
         res.estimates[(e, j)] = term_estimate(prob, f, e, flat.joints[j])
         res.term_gain[(e, j)] = gains[e]
         res.term_rows[(e, j)] = prob.held_sq(withouts[e], held_idx) - prob.held_sq(f, held_idx)

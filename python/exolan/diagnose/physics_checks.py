@@ -18,7 +18,7 @@ def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: l
     r = sig.lp(np.where(np.isfinite(residual[:, j]), residual[:, j], 0.0))
     sig_r = parallel_filter.Signals(**{**sig.__dict__, "tau": np.where(np.isfinite(sig.tau), 0.0, np.nan)})
     sig_r.tau[:, j] = r
-    p = ident.JointProblem(sig_r, j, np.ones((len(r), 1)), ["const"], prob.ctx)
+    p = ident.JointProblem(sig_r, j, np.ones((len(r), 1)), ["const"], prob.ctx, shiftable=False)
     p.w = prob.w
     f = p.fit(terms)
     return {e: term_estimate(p, f, e, flat.joints[j]) for e in terms}

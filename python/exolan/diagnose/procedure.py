@@ -265,7 +265,7 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
         (eff, flat.joints.index(name)), (None, None))[1], lambda a, b: ss.gain(a, b))
     step(s, "5/7 forward selection")
     sel = selection.forward(ss, results)                        # 5. forward selection (Holm)
-    selection.without_terms(ss, results)                        # 6. backlash, payload
+    selection.without_terms(ss, results)                        # 6. payload
     step(s, "7/7 extended model")
     accepted, model, cis = extended.joint_fit(ss, results, sel.acc_init)     # 7. the extended model
     ext_model, ext_rep, ro_ext = None, None, None

@@ -75,7 +75,7 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    the base was fitted here; the extended model with the terms at their joint estimates must beat the base on
    held-out data as in rule 1 (fitted from scratch, or else the base's own refit with the terms held there,
    beyond the refit noise; its looks share the confirmation's 5 %), or its terms are `ambiguous`;
-7. encoder offset, torque bias, payload are `absorbable`, backlash has no term (never findings).
+7. encoder offset, torque bias, payload are `absorbable` (never findings).
 One significance budget: every accept decision spends from one family-wise 5 % over the m candidates the data can
 test: a candidate's single-term test (rules 1 and 2) at α/m (Bonferroni), a further term in forward selection,
 after r accepted ones, at α/(m − r) (Holm); a decision that may pass by a second look (the same terms fitted from

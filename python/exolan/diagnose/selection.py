@@ -1,6 +1,6 @@
 """Step 5 and 6 of the learned path: forward selection among the candidates that passed term by term, rivals
 compared, a further term tested on top of the accepted ones (warm, then from scratch with its second look), at
-Holm's level of the budget; and the effects that have no term (backlash, payload), reported by rule."""
+Holm's level of the budget; and the effect that has no term (a payload), reported by rule."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -172,22 +172,11 @@ def _further_from_scratch(ss, e, sel: Selection, jj: int, init: dict, level: flo
 
 
 def without_terms(ss, results: list) -> None:
-    """Step 6: effects without a term. Backlash is ambiguous where an effect it mimics is named on its joint;
-    a payload changes H and V, which the model learns."""
+    """Step 6: effects without a term: a payload changes H and V, which the model learns."""
     for j in ss.joint_ids:
-        name = ss.flat.joints[j]
-        for c in (LIBRARY["backlash"], LIBRARY["payload"]):
-            e = _blank(ss, c, j)
-            if c.kind == "not_modelled":
-                mimic = [x["effect"] for x in results if x["joint"] == name and x["effect"] in c.mimics
-                         and x.get("status") in ("accepted", "ambiguous")]
-                e.update(status="ambiguous" if mimic else "rejected", reason=(
-                    f"not modelled; its signature is that of {', '.join(mimic)}" if mimic else
-                    "not modelled; no Coulomb- or strap-like residual that it could explain"))
-            else:
-                e.update(unit="kg", status="absorbable",
-                         reason="a mass on a segment changes H and V, which the model learns")
-            results.append(e)
+        e = _blank(ss, LIBRARY["payload"], j)
+        e.update(unit="kg", status="absorbable", reason="a mass on a segment changes H and V, which the model learns")
+        results.append(e)
 
 
 def _blank(ss, c, j: int):
