@@ -81,10 +81,8 @@ def test_the_extended_model_takes_the_limb_at_the_measured_angle_plus_half_the_g
 
 
 def _turns(seed: int) -> np.ndarray:
-    """Three sines, quick turns (q̈ about 20 rad/s² there, as a knee's in gait). Near a turn the faster parts can
-    turn the limb back inside the gap before it crosses, which the measured angle does not show; with them weaker
-    (a nearly single sine) inertia and gravity become collinear (q̈ ≈ −ω² q) and the base trades with the shift:
-    both measured, docs/DIAGNOSIS.md."""
+    """Three sines, quick turns (q̈ about 20 rad/s² there, as a knee's in gait; near a few of them the faster parts
+    turn the limb back inside the gap, which the measured angle does not show: docs/DIAGNOSIS.md)."""
     rng = np.random.default_rng(seed)
     t = np.arange(T) * DT
     return sum(a * rng.uniform(0.8, 1.2) * np.sin(2 * np.pi * f * rng.uniform(0.9, 1.1) * t + rng.uniform(0, 6))
@@ -136,21 +134,17 @@ def test_the_profiled_sse_is_the_base_refitted_in_the_shifted_coordinates():
         assert np.abs(prob._basis().at(u)[tr] - exact).max() <= 0.01 * moved + 1e-12, w
 
 
-def test_physics_first_names_a_backlash_alone_at_its_size_or_not_at_all():
-    """A pendulum seen through a backlash (three recordings), 24 draws at 0.01 and 0.03 rad: where physics first names
-    it, it names it alone and within 20 % (measured 0.84-1.00 of the width); it names it in at least two draws of
-    three (measured 20 of 24; the others sized 0.67-0.82 recording by recording apart, and rejected by the
-    recordings' check). A column beside a fixed base sized a knee's 0.04 rad at 0.016 (docs/DIAGNOSIS.md): the base
-    has to move with the coordinates."""
-    named = 0
-    for width in (0.01, 0.03):
-        for seed in range(0, 36, 3):
+def test_physics_first_names_a_backlash_alone_at_its_size():
+    """A pendulum seen through a backlash (three recordings), 24 draws of 0.01-0.04 rad: physics first names it alone,
+    within 10 % (measured 0.95-1.00 of the width in 48 draws). A column beside a fixed base sized a knee's 0.04 rad
+    at 0.016 (docs/DIAGNOSIS.md): the base has to move with the coordinates. Before the side was read only inside a
+    run's ends, 12 of 48 such draws were sized 0.56-0.88 and rejected: a two-sample flip of the side at a trial's
+    start."""
+    for width in (0.01, 0.02, 0.03, 0.04):
+        for seed in range(0, 18, 3):
             res = _physics_first(width, 0.0, seed)
-            assert [e for e, _ in res.accepted] in ([], ["backlash"]), (width, seed, res.status)
-            if res.accepted:
-                named += 1
-                assert abs(res.estimates[("backlash", 0)].estimate / width - 1) < 0.2, (width, seed, res.estimates)
-    assert named >= 16, named
+            assert [e for e, _ in res.accepted] == ["backlash"], (width, seed, res.status)
+            assert abs(res.estimates[("backlash", 0)].estimate / width - 1) < 0.1, (width, seed, res.estimates)
 
 
 @pytest.mark.parametrize("coulomb, want", [(1.0, ["coulomb_friction"]), (0.0, [])])

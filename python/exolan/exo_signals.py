@@ -124,15 +124,17 @@ def gap_side(q: np.ndarray, dt: float, k: float = 4.0) -> np.ndarray:
 
     x = np.asarray(q, dtype=np.float64)
     out = np.zeros_like(x)
-    sos = butter(4, min(0.2 / dt, 50.0), fs=1.0 / dt, output="sos")
+    fc = min(0.2 / dt, 50.0)
+    sos = butter(4, fc, fs=1.0 / dt, output="sos")
+    edge = int(np.ceil(1.0 / (fc * dt)))       # samples at each end of a run where the smoothed slope is the padding's
     for j in range(x.shape[1]):
         for a, b in finite_runs(np.isfinite(x[:, j])):
             if b - a > 30:
-                out[a:b, j] = _side_of_run(x[a:b, j], sos, k)
+                out[a:b, j] = _side_of_run(x[a:b, j], sos, k, edge)
     return out
 
 
-def _side_of_run(x: np.ndarray, sos, k: float, m: int = 6) -> np.ndarray:
+def _side_of_run(x: np.ndarray, sos, k: float, edge: int, m: int = 6) -> np.ndarray:
     from scipy.signal import sosfiltfilt
 
     smooth = sosfiltfilt(sos, x)
@@ -143,6 +145,11 @@ def _side_of_run(x: np.ndarray, sos, k: float, m: int = 6) -> np.ndarray:
     slope = np.gradient(smooth)
     gain = np.std(np.gradient(sosfiltfilt(sos, np.random.default_rng(0).standard_normal(4096))))
     sure = np.abs(slope) > k * sigma * gain
+    # near a run's ends the smoothed slope is the filter's padding: a side read there flipped for two samples at a
+    # trial's start, and its second derivative (4e4 rad/s² per unit) wrecked the rows around it; the side there is
+    # the nearest one read inside
+    sure[:edge] = False
+    sure[len(sure) - edge:] = False
     idx = np.maximum.accumulate(np.where(sure, np.arange(len(slope)), -1))
     first = np.sign(slope[int(np.argmax(sure))]) if sure.any() else 1.0
     s = np.where(idx >= 0, np.sign(slope[np.maximum(idx, 0)]), first)

@@ -18,7 +18,7 @@ Rule, in plain words (the report states it):
    (`consistency`): fitted trial by trial, the term's 95 % prediction interval for a new recording must lie on the
    physical side of no effect — a constant of the joint, not a shape of the base's misfit. A term whose column is
    the exo torque (a gain) must also show on the controller's own variation (`own_variation`).
-4. Rivals (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap): an accepted term whose rival, put in its
+4. Rivals (delay/damping, Coulomb/Stribeck, delay/strap, gain/strap, Coulomb/backlash): an accepted term whose rival, put in its
    place, is significant there (same threshold), sized inside its physical domain with a finite interval (as an
    accepted term must be) and not worse on held-out data (CI of the difference reaching 0) is `ambiguous` with it
    — unless one reduces to the other (Stribeck to Coulomb): the simpler is taken. Where the learned base's
