@@ -1,6 +1,6 @@
 """Backlash by variable projection on physics first's parametric base (the next step the backlash term needs).
 
-    python backlash_profile.py WORLD JOINT_INDEX        (needs docs/experiments/backlash-term.patch applied: gap_side)
+    python backlash_profile.py WORLD JOINT_INDEX        (gap_side: in exolan.exo_signals since 2026-11-29)
 
 For each width w of a grid the measured angles are corrected to the limb's, q + (w/2) s (s: `gap_side`, the side of
 the gap read off the raw angle), physics first's signals and parametric base are made again on the corrected data
