@@ -172,18 +172,8 @@ def _side_of_run(x: np.ndarray, sos, k: float, edge: int, m: int = 6) -> np.ndar
 def _held_runs(x: np.ndarray, held: np.ndarray, tol: float) -> list[tuple[int, int]]:
     """[(i, j)]: stretches of samples i..j joined by held steps; two stretches a noise step or two apart whose
     levels (medians) lie within `tol` of each other are one (a long gap's noise breaks it otherwise)."""
-    runs, i, n = [], 0, len(held)
-    while i < n:
-        if not held[i]:
-            i += 1
-            continue
-        j = i
-        while j < n and held[j]:
-            j += 1
-        runs.append((i, j))                 # steps i..j-1 held: samples i..j
-        i = j
     out: list[tuple[int, int]] = []
-    for i, j in runs:
+    for i, j in ((int(a), int(b)) for a, b in finite_runs(held)):     # steps i..j-1 held: samples i..j
         if out and i - out[-1][1] <= 2 and abs(np.median(x[i:j + 1]) - np.median(x[out[-1][0]:out[-1][1] + 1])) <= tol:
             out[-1] = (out[-1][0], j)
         else:

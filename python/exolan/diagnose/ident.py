@@ -303,18 +303,24 @@ class JointProblem:
         """A shift term that moves the base's coordinates here (no column of its own)."""
         return TERMS[eff].shift and self._shiftable
 
-    def _design(self, terms: list, nu: dict):
-        X, names, offset = [self._X(self._u(terms, nu))], list(self.base_names), np.zeros(len(self.y))
+    def _parts(self, terms: list, nu: dict, leave_out: str | None = None) -> tuple[np.ndarray, list]:
+        """What `terms` at ν add to the base on every row: the fixed terms' columns summed (an offset) and the
+        linear terms' named columns; a term that moves the base adds none."""
+        offset, cols = np.zeros(len(self.y)), []
         for eff in terms:
-            if self._moves(eff):
+            if eff == leave_out or self._moves(eff):
                 continue
             c = self.col(eff, nu.get(eff))
             if TERMS[eff].fixed:
                 offset += c
             else:
-                for name, ck in self._columns(eff, c):
-                    X.append(ck[:, None]); names.append(name)
-        return np.concatenate(X, 1), names, offset
+                cols += self._columns(eff, c)
+        return offset, cols
+
+    def _design(self, terms: list, nu: dict):
+        offset, cols = self._parts(terms, nu)
+        X = np.concatenate([self._X(self._u(terms, nu))] + [c[:, None] for _, c in cols], 1)
+        return X, list(self.base_names) + [name for name, _ in cols], offset
 
     def _partial(self, v: np.ndarray, u: float = 0.0) -> np.ndarray:
         """v (training rows, weighted) less its projection on the weighted base at the shift u."""
@@ -324,20 +330,11 @@ class JointProblem:
         """Weighted training SSE of the base plus `terms` at ν (the base partialled out: a small LS)."""
         tr = self.train
         sw = np.sqrt(self.w[tr])
-        off = np.zeros(int(tr.sum()))
-        cols = []
         u = self._u(terms, nu)
-        for eff in terms:
-            if self._moves(eff):
-                continue
-            c = self.col(eff, nu.get(eff))
-            if TERMS[eff].fixed:
-                off += c[tr]
-            else:
-                cols += [ck[tr] for _, ck in self._columns(eff, c)]
-        rz = self._partial((self.y[tr] - off) * sw, u)
+        off, cols = self._parts(terms, nu)
+        rz = self._partial((self.y[tr] - off[tr]) * sw, u)
         if cols:
-            Cz = self._partial(np.stack(cols, 1) * sw[:, None], u)
+            Cz = self._partial(np.stack([c[tr] for _, c in cols], 1) * sw[:, None], u)
             rz = rz - Cz @ np.linalg.lstsq(Cz, rz, rcond=None)[0]
         return float(rz @ rz)
 
@@ -366,16 +363,8 @@ class JointProblem:
         (`shift.Profile`: the base refitted at every ν without a factorisation of the rows)."""
         if not self._moves(e):
             return lambda v: self.sse(terms, dict(nu, **{e: float(v)}))
-        off, cols = np.zeros(len(self.y)), []
-        for x in terms:
-            if x == e or self._moves(x):
-                continue
-            c = self.col(x, nu.get(x))
-            if TERMS[x].fixed:
-                off = off + c
-            else:
-                cols += [ck for _, ck in self._columns(x, c)]
-        C = np.stack(cols, 1) if cols else np.zeros((len(self.y), 0))
+        off, cols = self._parts(terms, nu, leave_out=e)
+        C = np.stack([c for _, c in cols], 1) if cols else np.zeros((len(self.y), 0))
         prof = self._basis().profile(self.train, self.w, self.y - off, C)
         return lambda v: prof(0.5 * float(v))
 

@@ -48,7 +48,7 @@ class ShiftBasis:
         self.X0 = X0
         self.X1 = np.nan_to_num((Xp - Xm) / (2 * h))
         self.X2 = np.nan_to_num((Xp + Xm - 2 * X0) / (2 * h * h))
-        self._gram: tuple | None = None
+        self._gram: np.ndarray | None = None
 
     def at(self, u: float) -> np.ndarray:
         return self.X0 + u * self.X1 + (u * u) * self.X2
@@ -57,18 +57,20 @@ class ShiftBasis:
         """∂(X(u) θ)/∂u: the prediction's change with the shift at fixed base coefficients (its linearisation)."""
         return (self.X1 + (2 * u) * self.X2) @ theta
 
-    def _blocks(self, train: np.ndarray, w: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(3, p, k) Xaᵀ W V over the training rows, a = 0, 1, 2; in row blocks (no weighted copy of the design)."""
-        p = self.X0.shape[1]
-        XV = np.zeros((3, p, V.shape[1]))
+    def _chunks(self, train: np.ndarray):
+        """(rows of a block, its training rows) over the design, CHUNK rows at a time: no weighted copy is kept."""
         for a in range(0, len(train), CHUNK):
             m = train[a:a + CHUNK]
-            if not m.any():
-                continue
-            ww = w[a:a + CHUNK][m][:, None]
-            Vw = V[a:a + CHUNK][m] * ww
+            if m.any():
+                yield slice(a, a + CHUNK), m
+
+    def _blocks(self, train: np.ndarray, w: np.ndarray, V: np.ndarray) -> np.ndarray:
+        """(3, p, k) Xaᵀ W V over the training rows, a = 0, 1, 2."""
+        XV = np.zeros((3, self.X0.shape[1], V.shape[1]))
+        for sl, m in self._chunks(train):
+            Vw = V[sl][m] * w[sl][m][:, None]
             for k, X in enumerate((self.X0, self.X1, self.X2)):
-                XV[k] += X[a:a + CHUNK][m].T @ Vw
+                XV[k] += X[sl][m].T @ Vw
         return XV
 
     def gram(self, train: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -76,12 +78,9 @@ class ShiftBasis:
         if self._gram is None:
             p = self.X0.shape[1]
             G = np.zeros((3, 3, p, p))
-            for a in range(0, len(train), CHUNK):
-                m = train[a:a + CHUNK]
-                if not m.any():
-                    continue
-                ww = np.sqrt(w[a:a + CHUNK][m])[:, None]
-                Xs = [X[a:a + CHUNK][m] * ww for X in (self.X0, self.X1, self.X2)]
+            for sl, m in self._chunks(train):
+                ww = np.sqrt(w[sl][m])[:, None]
+                Xs = [X[sl][m] * ww for X in (self.X0, self.X1, self.X2)]
                 for i in range(3):
                     for k in range(i, 3):
                         G[i, k] += Xs[i].T @ Xs[k]
