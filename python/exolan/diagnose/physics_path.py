@@ -192,10 +192,10 @@ def select_terms(phys: physics.PhysicsResult, flat, s, joint_ids, log) -> None:
 
 
 def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, make) -> "ExtendedAhead":
-    """Physics first's extended model started while the learned base is fitted, on the core that fit leaves free
+    """Physics first's extended model started once the gate has passed `joint_ids`, beside the checks that follow
     (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit, and
-    needs neither the learned base nor the gate): the selection on a copy of `phys` (the main flow selects on
-    `phys` meanwhile), run on every joint before the gate; its accepted terms and sizes are the key."""
+    needs neither the learned base nor the second gate): the selection on a copy of `phys` (the main flow selects
+    on `phys` meanwhile), on the same joints; its accepted terms and sizes are the key."""
     return ExtendedAhead(copy.deepcopy(phys), flat, s, joint_ids, workers, make)
 
 
@@ -219,8 +219,8 @@ class ExtendedAhead:
             self.key = _terms_key(accepted, init)
         finally:
             self._keyed.set()
-        log(s, "physics first's extended model started ahead, beside the base fit (kept if the gate and the checks "
-               "leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
+        log(s, "physics first's extended model started ahead, beside its checks (kept if the second gate and the "
+               "checks leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
         return make(accepted, init)
 
     def cancel(self) -> None:
@@ -279,7 +279,7 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     `fit` (terms -> model) and `errors` (model -> held-out squared error per row): tests pass stubs."""
     from .refits import refit_terms_frozen
     from .rules import paired_gain
-    from .workers import Workers
+    from .workers import Workers, current
 
     held = flat.index("held")
     fit = fit or (lambda terms: extended_model(base, flat, s, terms, phys, refit_terms_frozen))
@@ -291,7 +291,7 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     combos = [keys] + ([[x for x in keys if x != k] for k in keys] if len(keys) > 1 else [])
     log(f"the learned base's check: {', '.join(f'{e}:{flat.joints[j]}' for e, j in keys)} held at their physical "
         f"sizes, the networks refitted ({len(combos)} refits)")
-    models = Workers(s.workers).map([lambda c=c: fit(c) for c in combos])
+    models = (current() or Workers(s.workers)).map([lambda c=c: fit(c) for c in combos])
     errs = [errors(m) for m in models]
     e_ref = errors(ref)
     for i, (eff, j) in enumerate(keys):

@@ -22,7 +22,7 @@ from .results import public, strip
 from .rules import paired_gain
 from .session import Session, Tools
 from .settings import Budget, Settings, log, step
-from .workers import Workers
+from .workers import Workers, running
 
 __all__ = ["Settings", "Tools", "load_trials", "run"]
 
@@ -79,17 +79,20 @@ def fit_base(flat, s: Settings, model, start=None):
     return base, base_start, describe_base(base, flat, s, given=model is not None)
 
 
-def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
+def physics_first(flat, s: Settings, ref, joint_ids, phys, gate, passed=None) -> dict:
     """The gate per joint equation (`gate`: `physics_path.adequacy` or a test's stub): the parametric family at its
     most (every linear term at once) against the learned reference; the selection runs on the candidates of the
     joints where it is not worse on held-out data, then the cross-check, then the gate again with the accepted terms
-    only. Returns the gate with `paths`: joint name -> the path that decides its candidates."""
+    only. `passed(joints)`: told which joints passed the first gate, where any did (the run starts physics first's
+    extended model there). Returns the gate with `paths`: joint name -> the path that decides its candidates."""
     from . import physics, physics_checks, physics_path
 
     first = gate(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
                  what="the parametric base with every linear candidate term")
     joints = {nm: dict(v, model=first["model"]) for nm, v in first["joints"].items()}
     passing = [j for j in joint_ids if joints[flat.joints[j]]["adequate"]]
+    if passing and passed is not None:
+        passed(passing)
     while passing:
         # a joint that fails the second gate leaves to the learned path: the selection runs again without it, so
         # its acceptances count in no other joint's Holm thresholds (the set only shrinks: at most one rerun a joint)
@@ -175,29 +178,38 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
         from . import physics
         p = physics.setup(flat, s.effects, joint_ids, alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay)
         log(s, f"parametric base fitted ({p.seconds:.1f} s)")
-        if start is not None and workers.n > 1:     # the core the base fit leaves free
-            ahead.append(physics_path.extended_ahead(p, flat, s, joint_ids, workers, lambda terms, init:
-                                                     tools.fit_without(flat, s, start, terms, init)))
         return p
 
+    def passed(phys, joints):
+        # physics first's extended model beside its checks, once the gate says which joints it decides (started
+        # beside the base fit instead, it took the core the base fit's steps now split over, on every world)
+        if start is not None and workers.n > 1:
+            ahead.append(physics_path.extended_ahead(phys, flat, s, joints, workers, lambda terms, init:
+                                                     tools.fit_without(flat, s, start, terms, init)))
+
     step(s, "1/7 base and reference" + (" beside the parametric base" if s.physics_first else ""))
-    try:
-        # independent (numpy and torch, each on one thread): side by side where a second worker is free
-        (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
-                                               parametric if s.physics_first else lambda: None])
-        return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
-                                ahead[0] if ahead else None)
-    finally:
-        for a in ahead:
-            a.cancel()
+    with running(workers):
+        try:
+            # independent (numpy and torch, each on one thread): side by side where a second worker is free
+            (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
+                                                   parametric if s.physics_first else lambda: None])
+            return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
+                                    passed, ahead)
+        finally:
+            for a in ahead:
+                a.cancel()
 
 
-def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, ahead) -> dict:
+def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, passed,
+                     started: list) -> dict:
     """`run` from the gate on: which path decides each joint, rule 6, the learned path, physics first's report.
-    `ahead`: physics first's extended model started beside the base fit (`physics_path.extended_ahead`)."""
+    `passed(phys, joints)` starts physics first's extended model (`physics_path.extended_ahead`) into `started`
+    once the gate has passed joints."""
     from . import compensate, physics_path
     raw = ss
-    adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy) if phys is not None else None
+    adequate = (physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy, lambda js: passed(phys, js))
+                if phys is not None else None)
+    ahead = started[0] if started else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
     # joints whose own gate passed, the learned path the others'. (A candidate whose columns touched several
     # joints' equations would go to physics first only if every joint it touches passed; none does today.)
