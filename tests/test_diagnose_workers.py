@@ -172,8 +172,8 @@ def test_a_fit_started_ahead_stops_at_its_next_progress_tick_when_cancelled():
 
 
 def test_physics_first_with_its_extended_model_started_ahead_gives_the_same_diagnosis(tmp_path, capsys):
-    """With a second worker, physics first's extended model is fitted beside its checks once the gate has passed the
-    joint (`physics_path.extended_ahead`) and handed over where the final terms are those it was started for: the diagnosis is the one
+    """With a second worker, physics first's extended model is fitted beside the base fit (`physics_path.
+    extended_ahead`) and handed over where the final terms are those it was started for: the diagnosis is the one
     made one fit at a time."""
     from exolan.diagnose.synthetic import servo_trial
     trials = [servo_trial(f"r{k}", seconds=8.0, seed=k, viscous=200.0, coulomb=20.0, offset=-3.0) for k in range(2)]

@@ -192,10 +192,13 @@ def select_terms(phys: physics.PhysicsResult, flat, s, joint_ids, log) -> None:
 
 
 def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, make) -> "ExtendedAhead":
-    """Physics first's extended model started once the gate has passed `joint_ids`, beside the checks that follow
+    """Physics first's extended model started while the learned base is fitted, on the core that fit leaves free
     (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit, and
-    needs neither the learned base nor the second gate): the selection on a copy of `phys` (the main flow selects
-    on `phys` meanwhile), on the same joints; its accepted terms and sizes are the key."""
+    needs neither the learned base nor the gate): the selection on a copy of `phys` (the main flow selects on
+    `phys` meanwhile), run on every joint before the gate; its accepted terms and sizes are the key. Stopped
+    where the base, part-way through its fit, already shows the gate will send every joint to the learned path
+    (`procedure.run`): two fits side by side gain more than one fit split over two cores, but only while both
+    are wanted."""
     return ExtendedAhead(copy.deepcopy(phys), flat, s, joint_ids, workers, make)
 
 
@@ -219,12 +222,16 @@ class ExtendedAhead:
             self.key = _terms_key(accepted, init)
         finally:
             self._keyed.set()
-        log(s, "physics first's extended model started ahead, beside its checks (kept if the second gate and the "
-               "checks leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
+        log(s, "physics first's extended model started ahead, beside the base fit (kept if the gate and the checks "
+               "leave the same terms: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in accepted) + ")")
         return make(accepted, init)
 
     def cancel(self) -> None:
         self._ahead.cancel()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._ahead.cancelled
 
     def take(self, accepted: list, init: dict):
         """The model where it was started for these terms at these sizes, else None (and the fit is cancelled)."""

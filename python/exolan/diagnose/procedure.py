@@ -60,16 +60,17 @@ def new_base(flat, s: Settings):
                      pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
 
 
-def fit_base(flat, s: Settings, model, start=None):
+def fit_base(flat, s: Settings, model, start=None, look=None):
     """The base (slow-context DeLaN, or a given run's pooled model adapted to these data) and its state before the
     fit, from which fits from scratch start (None: a model judged as given, whose extended models are warm starts).
     A given run's networks and the diagnosis' terms are fitted with the base's own schedule (`base.PooledContext`).
-    `start`: the slow-context base before its fit, where the caller made it already (`new_base`)."""
+    `start`: the slow-context base before its fit, where the caller made it already (`new_base`). `look(step, base)`:
+    called after every step of the base fit (`refits.base_fit`)."""
     t0 = time.time()
     base = model if model is not None else copy.deepcopy(start) if start is not None else new_base(flat, s)
     base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
     if base_start is not None:
-        base_fit(base, flat, s)
+        base_fit(base, flat, s, look=look)
     log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
         flat.weight = misfit_weights(base, flat)
@@ -79,20 +80,17 @@ def fit_base(flat, s: Settings, model, start=None):
     return base, base_start, describe_base(base, flat, s, given=model is not None)
 
 
-def physics_first(flat, s: Settings, ref, joint_ids, phys, gate, passed=None) -> dict:
+def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
     """The gate per joint equation (`gate`: `physics_path.adequacy` or a test's stub): the parametric family at its
     most (every linear term at once) against the learned reference; the selection runs on the candidates of the
     joints where it is not worse on held-out data, then the cross-check, then the gate again with the accepted terms
-    only. `passed(joints)`: told which joints passed the first gate, where any did (the run starts physics first's
-    extended model there). Returns the gate with `paths`: joint name -> the path that decides its candidates."""
+    only. Returns the gate with `paths`: joint name -> the path that decides its candidates."""
     from . import physics, physics_checks, physics_path
 
     first = gate(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
                  what="the parametric base with every linear candidate term")
     joints = {nm: dict(v, model=first["model"]) for nm, v in first["joints"].items()}
     passing = [j for j in joint_ids if joints[flat.joints[j]]["adequate"]]
-    if passing and passed is not None:
-        passed(passing)
     while passing:
         # a joint that fails the second gate leaves to the learned path: the selection runs again without it, so
         # its acceptances count in no other joint's Holm thresholds (the set only shrinks: at most one rerun a joint)
@@ -138,11 +136,12 @@ def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, work
                 twin_d=twin_d)
 
 
-def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids, start=None) -> tuple[Session, str]:
+def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids, start=None,
+              look=None) -> tuple[Session, str]:
     """Step 1: the base, the fit weights and the reference refit, in the learned path's `Session` (every decision
     compares held-out errors weighted as the fits are; what the report calls a held-out gain is the unweighted one,
     the user's torque error). Returns it and the base's description."""
-    base, base_start, base_source = fit_base(flat, s, model, start)
+    base, base_start, base_source = fit_base(flat, s, model, start, look)
     held = flat.index("held")
     w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
     ref = copy.deepcopy(base)
@@ -172,44 +171,51 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
     from . import physics_path
     start = new_base(flat, s) if model is None else None      # made here: the fit started ahead needs it too
-    ahead = []
+    ahead, made = [], []        # physics first's extended model started ahead; the parametric base, once made
 
     def parametric():
         from . import physics
         p = physics.setup(flat, s.effects, joint_ids, alpha=s.alpha, cutoff_hz=s.cutoff_hz, max_delay=s.max_delay)
         log(s, f"parametric base fitted ({p.seconds:.1f} s)")
+        if start is not None and workers.n > 1:     # the core the base fit leaves free
+            ahead.append(physics_path.extended_ahead(p, flat, s, joint_ids, workers, lambda terms, init:
+                                                     tools.fit_without(flat, s, start, terms, init)))
+        made.append(p)
         return p
 
-    def passed(phys, joints):
-        # physics first's extended model beside its checks, once the gate says which joints it decides (started
-        # beside the base fit instead, it took the core the base fit's steps now split over, on every world)
-        if start is not None and workers.n > 1:
-            ahead.append(physics_path.extended_ahead(phys, flat, s, joints, workers, lambda terms, init:
-                                                     tools.fit_without(flat, s, start, terms, init)))
+    def look(i, base):
+        # scheduling only (the gate decides later, on the reference): where the base, a quarter into its fit, is
+        # already better on held-out data than the parametric family at its most on every joint, the gate will
+        # cancel the extended model started ahead, and its core is worth more to the base fit's steps now
+        if i + 1 != s.steps_base // 4 or not ahead or not made or ahead[0].cancelled:
+            return
+        from . import physics
+        early = physics_path.adequacy(physics.saturated_held(made[0], flat), base, flat, joint_ids, n_boot=s.n_boot)
+        if not any(v["adequate"] for v in early["joints"].values()):
+            log(s, f"the base at step {i + 1} is better on held-out data than the parametric base on every joint: "
+                   "physics first's extended model started ahead is stopped, the base fit takes both cores")
+            ahead[0].cancel()
 
     step(s, "1/7 base and reference" + (" beside the parametric base" if s.physics_first else ""))
     with running(workers):
         try:
             # independent (numpy and torch, each on one thread): side by side where a second worker is free
-            (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
+            (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start,
+                                                                     look if s.physics_first else None),
                                                    parametric if s.physics_first else lambda: None])
             return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
-                                    passed, ahead)
+                                    ahead[0] if ahead else None)
         finally:
             for a in ahead:
                 a.cancel()
 
 
-def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, passed,
-                     started: list) -> dict:
+def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, ahead) -> dict:
     """`run` from the gate on: which path decides each joint, rule 6, the learned path, physics first's report.
-    `passed(phys, joints)` starts physics first's extended model (`physics_path.extended_ahead`) into `started`
-    once the gate has passed joints."""
+    `ahead`: physics first's extended model started beside the base fit (`physics_path.extended_ahead`)."""
     from . import compensate, physics_path
     raw = ss
-    adequate = (physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy, lambda js: passed(phys, js))
-                if phys is not None else None)
-    ahead = started[0] if started else None
+    adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy) if phys is not None else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
     # joints whose own gate passed, the learned path the others'. (A candidate whose columns touched several
     # joints' equations would go to physics first only if every joint it touches passed; none does today.)
