@@ -195,10 +195,7 @@ def extended_ahead(phys: physics.PhysicsResult, flat, s, joint_ids, workers, mak
     """Physics first's extended model started while the learned base is fitted, on the core that fit leaves free
     (`make`: terms, init -> model; the extended model fitted without its terms takes as long as the base fit, and
     needs neither the learned base nor the gate): the selection on a copy of `phys` (the main flow selects on
-    `phys` meanwhile), run on every joint before the gate; its accepted terms and sizes are the key. Stopped
-    where the base, part-way through its fit, already shows the gate will send every joint to the learned path
-    (`procedure.run`): two fits side by side gain more than one fit split over two cores, but only while both
-    are wanted."""
+    `phys` meanwhile), run on every joint before the gate; its accepted terms and sizes are the key."""
     return ExtendedAhead(copy.deepcopy(phys), flat, s, joint_ids, workers, make)
 
 
@@ -228,10 +225,6 @@ class ExtendedAhead:
 
     def cancel(self) -> None:
         self._ahead.cancel()
-
-    @property
-    def cancelled(self) -> bool:
-        return self._ahead.cancelled
 
     def take(self, accepted: list, init: dict):
         """The model where it was started for these terms at these sizes, else None (and the fit is cancelled)."""
@@ -286,7 +279,7 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     `fit` (terms -> model) and `errors` (model -> held-out squared error per row): tests pass stubs."""
     from .refits import refit_terms_frozen
     from .rules import paired_gain
-    from .workers import Workers, current
+    from .workers import Workers
 
     held = flat.index("held")
     fit = fit or (lambda terms: extended_model(base, flat, s, terms, phys, refit_terms_frozen))
@@ -298,7 +291,7 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     combos = [keys] + ([[x for x in keys if x != k] for k in keys] if len(keys) > 1 else [])
     log(f"the learned base's check: {', '.join(f'{e}:{flat.joints[j]}' for e, j in keys)} held at their physical "
         f"sizes, the networks refitted ({len(combos)} refits)")
-    models = (current() or Workers(s.workers)).map([lambda c=c: fit(c) for c in combos])
+    models = Workers(s.workers).map([lambda c=c: fit(c) for c in combos])
     errs = [errors(m) for m in models]
     e_ref = errors(ref)
     for i, (eff, j) in enumerate(keys):

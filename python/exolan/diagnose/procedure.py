@@ -22,7 +22,7 @@ from .results import public, strip
 from .rules import paired_gain
 from .session import Session, Tools
 from .settings import Budget, Settings, log, step
-from .workers import Workers, running
+from .workers import Workers
 
 __all__ = ["Settings", "Tools", "load_trials", "run"]
 
@@ -60,17 +60,16 @@ def new_base(flat, s: Settings):
                      pelvis_surge=s.pelvis_surge, lim_cop=s.lim_cop)
 
 
-def fit_base(flat, s: Settings, model, start=None, look=None):
+def fit_base(flat, s: Settings, model, start=None):
     """The base (slow-context DeLaN, or a given run's pooled model adapted to these data) and its state before the
     fit, from which fits from scratch start (None: a model judged as given, whose extended models are warm starts).
     A given run's networks and the diagnosis' terms are fitted with the base's own schedule (`base.PooledContext`).
-    `start`: the slow-context base before its fit, where the caller made it already (`new_base`). `look(step, base)`:
-    called after every step of the base fit (`refits.base_fit`)."""
+    `start`: the slow-context base before its fit, where the caller made it already (`new_base`)."""
     t0 = time.time()
     base = model if model is not None else copy.deepcopy(start) if start is not None else new_base(flat, s)
     base_start = copy.deepcopy(base) if (model is None or s.adapt_model) else None
     if base_start is not None:
-        base_fit(base, flat, s, look=look)
+        base_fit(base, flat, s)
     log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
         flat.weight = misfit_weights(base, flat)
@@ -136,12 +135,11 @@ def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, work
                 twin_d=twin_d)
 
 
-def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids, start=None,
-              look=None) -> tuple[Session, str]:
+def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_ids, start=None) -> tuple[Session, str]:
     """Step 1: the base, the fit weights and the reference refit, in the learned path's `Session` (every decision
     compares held-out errors weighted as the fits are; what the report calls a held-out gain is the unweighted one,
     the user's torque error). Returns it and the base's description."""
-    base, base_start, base_source = fit_base(flat, s, model, start, look)
+    base, base_start, base_source = fit_base(flat, s, model, start)
     held = flat.index("held")
     w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
     ref = copy.deepcopy(base)
@@ -171,7 +169,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
     from . import physics_path
     start = new_base(flat, s) if model is None else None      # made here: the fit started ahead needs it too
-    ahead, made = [], []        # physics first's extended model started ahead; the parametric base, once made
+    ahead = []
 
     def parametric():
         from . import physics
@@ -180,34 +178,18 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
         if start is not None and workers.n > 1:     # the core the base fit leaves free
             ahead.append(physics_path.extended_ahead(p, flat, s, joint_ids, workers, lambda terms, init:
                                                      tools.fit_without(flat, s, start, terms, init)))
-        made.append(p)
         return p
 
-    def look(i, base):
-        # scheduling only (the gate decides later, on the reference): where the base, a quarter into its fit, is
-        # already better on held-out data than the parametric family at its most on every joint, the gate will
-        # cancel the extended model started ahead, and its core is worth more to the base fit's steps now
-        if i + 1 != s.steps_base // 4 or not ahead or not made or ahead[0].cancelled:
-            return
-        from . import physics
-        early = physics_path.adequacy(physics.saturated_held(made[0], flat), base, flat, joint_ids, n_boot=s.n_boot)
-        if not any(v["adequate"] for v in early["joints"].values()):
-            log(s, f"the base at step {i + 1} is better on held-out data than the parametric base on every joint: "
-                   "physics first's extended model started ahead is stopped, the base fit takes both cores")
-            ahead[0].cancel()
-
     step(s, "1/7 base and reference" + (" beside the parametric base" if s.physics_first else ""))
-    with running(workers):
-        try:
-            # independent (numpy and torch, each on one thread): side by side where a second worker is free
-            (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start,
-                                                                     look if s.physics_first else None),
-                                                   parametric if s.physics_first else lambda: None])
-            return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
-                                    ahead[0] if ahead else None)
-        finally:
-            for a in ahead:
-                a.cancel()
+    try:
+        # independent (numpy and torch, each on one thread): side by side where a second worker is free
+        (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
+                                               parametric if s.physics_first else lambda: None])
+        return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
+                                ahead[0] if ahead else None)
+    finally:
+        for a in ahead:
+            a.cancel()
 
 
 def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, ahead) -> dict:

@@ -56,14 +56,12 @@ def terms_text(model) -> str:
 INERTIA_CONFUSED = ("actuation_delay",)
 
 
-def base_fit(model, flat: Flat, s: Settings, what: str = "base fit", trainer=train, look=None):
+def base_fit(model, flat: Flat, s: Settings, what: str = "base fit", trainer=train):
     """The base's recipe from `model`'s present state, in place (its steps, rate, batch, seed, acceleration term):
     the base itself and every fit that must differ from it by its data alone (an injection's base, the extended
-    model fitted without its terms). `look(step, model)`: called after every step (the run's scheduling)."""
-    tick = heartbeat(s, what, s.steps_base)
-    progress = tick if look is None else (lambda i, loss: (tick(i, loss), look(i, model)))
+    model fitted without its terms)."""
     return trainer(model, flat, s.steps_base, lr=s.lr_base, batch=s.batch, seed=s.seed, w_acc=s.w_acc,
-                   progress=progress)
+                   progress=heartbeat(s, what, s.steps_base))
 
 
 def refit(model, flat: Flat, s: Settings, seed_offset: int = 1, trainer=train):
