@@ -79,6 +79,44 @@ def test_fits_side_by_side_give_the_same_diagnosis_as_one_at_a_time(tmp_path):
     assert one["findings"] or one["rejected"]
 
 
+def test_a_fit_in_pieces_takes_a_free_permit_with_the_same_bits():
+    """`fit.train(pieces=2)` cuts every minibatch in two: on a pool with a permit free the second piece runs on
+    another thread (a fit alone takes both cores), and the fitted weights are the bits of the pieces one after the
+    other; the gradient is the whole minibatch's (the same fit in one piece ends within rounding of it)."""
+    import copy
+    import torch
+    from exolan.diagnose import fit
+    from exolan.diagnose.base import make_base
+    from exolan.diagnose.flat import prepare
+    trials, _ = linear_drive(n_trials=2, seconds=4.0, seed=3, viscous=8.0, coulomb=4.0)
+    flat = prepare(trials, max_delay=0.05, seed=0)
+    start = make_base(flat, hidden=8, z_dim=2, seed=0)
+    threads, forward = set(), fit._forward_inertia
+
+    def seen(*a, **k):
+        threads.add(threading.get_ident())
+        return forward(*a, **k)
+    models = []
+    for pool in (None, Workers(2)):
+        m = copy.deepcopy(start)
+        threads.clear()
+        fit._forward_inertia = seen
+        try:
+            hist = fit.train(m, flat, 20, batch=256, seed=1, average=True, pieces=2, pool=pool)
+        finally:
+            fit._forward_inertia = forward
+        models.append((m, hist, len(threads)))
+    (m1, h1, t1), (m2, h2, t2) = models
+    assert t1 == 1 and t2 > 1           # helpers are threads of each step's own
+    assert h1 == h2
+    assert all(torch.equal(a, b) for a, b in zip(m1.state_dict().values(), m2.state_dict().values()))
+    whole = copy.deepcopy(start)
+    h0 = fit.train(whole, flat, 20, batch=256, seed=1, average=True)
+    assert h0[0] == pytest.approx(h1[0], rel=1e-5)          # the same first minibatch, the same loss
+    assert all(torch.allclose(a, b, rtol=1e-3, atol=1e-4) for a, b in zip(whole.state_dict().values(),
+                                                                       m1.state_dict().values()))
+
+
 def test_a_thread_waiting_for_a_result_lends_its_permit_to_the_thread_making_it():
     """Two jobs need the same result: one makes it with a nested map of two parts, the other waits. The waiting
     thread's permit goes to the maker's nested map, so its two parts run side by side (not one after the other)."""

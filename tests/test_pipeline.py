@@ -49,7 +49,7 @@ def _stub(monkeypatch, fail=None, failed_runs=()):
     monkeypatch.setattr(R, "ensure_world", fake_world)
     monkeypatch.setattr(R, "reproduce", fake_reproduce)
     monkeypatch.setattr(P, "_cli", fake_cli)
-    def fake_py(code, argv, log, timeout, label):
+    def fake_py(code, argv, log, timeout, label, keep=None):
         import os
         calls.append("diagnose")
         os.makedirs(argv[2], exist_ok=True)
@@ -146,3 +146,18 @@ def test_a_timed_out_diagnosis_makes_the_job_partial_and_exolan_pipeline_exit_no
     for f in ("evaluation.json", "exolan.safetensors", "rollouts.json", "reproduce/report.md", "world/subjects.csv"):
         assert (out / f).exists(), f
     assert not (out / "diagnosis" / "diagnosis.json").exists()
+
+
+def test_a_step_in_its_own_process_shows_its_lines_as_they_come_and_keeps_them(tmp_path):
+    """The diagnosis step prints a line at least every 30 s: the job passes each on while the step still runs
+    (not its tail at the end) and keeps them all in a file."""
+    import time
+
+    got = []
+    code = "import time; print('first', flush=True); time.sleep(3); print('second', flush=True)"
+    _REAL_RUN_PY(code, [], log=lambda line: got.append((time.monotonic(), line)), timeout=60, label="probe",
+                 keep=tmp_path / "probe.log")
+    lines = {line.strip(): t for t, line in got}
+    assert lines["second"] - lines["first"] > 1.5           # the first was passed on before the step ended
+    assert (tmp_path / "probe.log").read_text().split() == ["first", "second"]
+

@@ -7,7 +7,8 @@
 4. export it to the Rust engine's weight file with ``exolan export``;
 5. open-loop rollouts with the Rust engine (``exolan rollout``) and a torch/Rust parity and speed check;
 6. diagnose the held-out users' recordings of the training tasks with that model (the diagnosis API with its
-   short-fit settings, bounded by EXOLAN_DIAGNOSE_TIMEOUT, default 1200 s);
+   short-fit settings, bounded by EXOLAN_DIAGNOSE_TIMEOUT, default 1200 s; its progress lines are shown as
+   they come and kept in ``DIR/diagnosis.log``);
 7. write ``DIR/pipeline.md`` / ``pipeline.json``: the job's status, every step's status, wall time and outputs.
 
 The job's status is "ok" when every step is ok, "partial" when a step failed, timed out or finished only in
@@ -27,6 +28,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -46,37 +48,58 @@ def diagnose_timeout() -> float:
     return float(env) if env else DIAGNOSE_TIMEOUT
 
 
-def _cli(*args: str, log, timeout: float | None = None) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "exolan.cli", *args]
-    log("[pipeline] $ exolan " + " ".join(args))
+def _stream(cmd: list[str], log, timeout: float | None, keep: Path | None = None) -> tuple[int | None, list[str]]:
+    """Run `cmd`, passing every line of its output to `log` as it comes (a long step shows its progress) and, where
+    `keep` is given, to that file too; stopped after `timeout` s. Returns (exit code, None if stopped; the last
+    lines)."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    tail: list[str] = []
+    sink = open(keep, "w") if keep is not None else None
+
+    def read():
+        for line in proc.stdout:
+            line = line.rstrip("\n")
+            log("    " + line)
+            tail[:] = (tail + [line])[-15:]
+            if sink is not None:
+                sink.write(line + "\n")
+                sink.flush()
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
     try:
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        code = proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
-        raise RuntimeError(f"exolan {args[0]} did not finish within {timeout:.0f} s (stopped)") from None
-    tail = (r.stdout + r.stderr).strip().splitlines()[-15:]
-    for line in tail:
-        log("    " + line)
-    if r.returncode != 0:
-        raise RuntimeError(f"exolan {args[0]} exited with {r.returncode}: " + " | ".join(tail[-3:]))
-    return r
+        proc.kill()
+        proc.wait()
+        code = None
+    finally:
+        reader.join(timeout=5)
+        if sink is not None:
+            sink.close()
+    return code, tail
+
+
+def _cli(*args: str, log, timeout: float | None = None) -> None:
+    log("[pipeline] $ exolan " + " ".join(args))
+    code, tail = _stream([sys.executable, "-m", "exolan.cli", *args], log, timeout)
+    if code is None:
+        raise RuntimeError(f"exolan {args[0]} did not finish within {timeout:.0f} s (stopped)")
+    if code != 0:
+        raise RuntimeError(f"exolan {args[0]} exited with {code}: " + " | ".join(tail[-3:]))
 
 
 class StepTimeout(RuntimeError):
     """A time-bounded step ran out of time: reported as "timed out" (and the job as partial)."""
 
 
-def _run_py(code: str, argv: list[str], log, timeout: float | None, label: str) -> None:
+def _run_py(code: str, argv: list[str], log, timeout: float | None, label: str, keep: Path | None = None) -> None:
     log(f"[pipeline] $ {label}: python -c {code!r} {' '.join(argv)}")
-    try:
-        r = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
+    rc, tail = _stream([sys.executable, "-c", code, *argv], log, timeout, keep)
+    if rc is None:
         raise StepTimeout(f"{label} did not finish within {timeout:g} s (stopped; "
-                          "EXOLAN_DIAGNOSE_TIMEOUT sets the bound)") from None
-    tail = (r.stdout + r.stderr).strip().splitlines()[-15:]
-    for line in tail:
-        log("    " + line)
-    if r.returncode != 0:
-        raise RuntimeError(f"{label} exited with {r.returncode}: " + " | ".join(tail[-3:]))
+                          "EXOLAN_DIAGNOSE_TIMEOUT sets the bound)")
+    if rc != 0:
+        raise RuntimeError(f"{label} exited with {rc}: " + " | ".join(tail[-3:]))
 
 
 def _step(name: str, steps: list, log, fn):
@@ -170,8 +193,8 @@ def pipeline(out: str | Path, log=print, scale: str = SCALE, diagnose_timeout_s:
                 "s = data.paper_split(data.load(sys.argv[1])); "
                 "diagnose(list(s.test_seen), model=sys.argv[2], out=sys.argv[3], quick=True)")
         _run_py(code, [str(world), str(ctx["run"]), str(d)], log=log, timeout=timeout,
-                label="diagnose (quick settings)")
-        res = {"diagnosis": str(d / "diagnosis.md"), "settings": "quick",
+                label="diagnose (quick settings)", keep=out / "diagnosis.log")
+        res = {"diagnosis": str(d / "diagnosis.md"), "log": str(out / "diagnosis.log"), "settings": "quick",
                "data": "held-out users x training tasks"}
         j = d / "diagnosis.json"
         if j.exists():

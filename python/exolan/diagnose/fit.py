@@ -2,6 +2,8 @@
 on rows of a `Flat`, and the per-trial misfit weights of the weighted least squares (`misfit_weights`)."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from torch import nn
@@ -10,6 +12,7 @@ from ..delan import solve_inertia
 from ..extensions import ExtendedModel
 from .base import _base_of, inertia_of
 from .flat import DTYPE, Flat
+from .workers import Workers, current
 
 
 def predict(model: nn.Module, flat: Flat, idx: torch.Tensor, chunk: int = 16384) -> torch.Tensor:
@@ -64,7 +67,8 @@ def sq_errors(model, flat: Flat, idx: torch.Tensor) -> np.ndarray:
 
 def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: float = 3e-2,
           batch: int = 4096, seed: int = 0, weight_decay: float = 0.0, progress=None,
-          average: bool = False, w_acc: float = 0.1, weighted: bool = True) -> list[float]:
+          average: bool = False, w_acc: float = 0.1, weighted: bool = True, pieces: int = 1,
+          pool: Workers | None = None) -> list[float]:
     """Minimise the mass-normalised torque MSE (per-joint scaled) on the training segments, plus `w_acc` times
     the acceleration MSE (per-joint scaled by the std of q̈). Where `flat.weight` is set (and `weighted`),
     every sample's squared errors are weighted per joint (`misfit_weights`).
@@ -82,6 +86,11 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     of the last iterates averages out, so two refits that
     differ only in minibatch order end closer together — the refit noise every held-out gain is judged
     against. Returns the loss history (every step).
+
+    `pieces` > 1: every step's minibatch is cut into that many pieces whose gradients are summed in order; a
+    piece runs on a helper thread where `pool` (default: the running diagnosis', `workers.current`) has a permit
+    free, else after the one before. A fit that runs alone so takes both cores, and its bits depend on `pieces`
+    only, never on how many permits were free.
     """
     g = torch.Generator().manual_seed(seed)
     tr = flat.index("train")
@@ -100,19 +109,24 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     # averaged: the networks only. An extension's physical scalar may still be moving towards its value
     # during a refit; its running mean would lag behind (measured: docs/DIAGNOSIS.md).
     params = list(groups[0]["params"])
+    trainable = [p for grp in groups for p in grp["params"]]
+    pool = pool if pool is not None else current() if pieces > 1 else None
     avg, n_avg, start_avg = None, 0, steps // 2
     for step in range(steps):
         b = tr[torch.randint(len(tr), (min(batch, len(tr)),), generator=g)]
-        pred, H = _forward_inertia(model, base, flat, b) if w_acc > 0 else (_forward(model, base, flat, b), None)
-        err = pred - flat.tau[b]
-        r = err / (flat.mass[b, None] * scale)
-        w = flat.weight[b] if weighted and flat.weight is not None else 1.0
-        loss = (w * r ** 2).sum(-1).mean()
-        if w_acc > 0:
-            a_err = solve_inertia(H, err) / acc_scale
-            loss = loss + w_acc * (w * a_err ** 2).sum(-1).mean()
         opt.zero_grad(set_to_none=True)
-        loss.backward()
+        if pieces > 1:
+            loss = sum(_step_grads(model, base, flat, b, scale, acc_scale, w_acc, weighted, trainable, pieces, pool))
+        else:
+            pred, H = _forward_inertia(model, base, flat, b) if w_acc > 0 else (_forward(model, base, flat, b), None)
+            err = pred - flat.tau[b]
+            r = err / (flat.mass[b, None] * scale)
+            w = flat.weight[b] if weighted and flat.weight is not None else 1.0
+            loss = (w * r ** 2).sum(-1).mean()
+            if w_acc > 0:
+                a_err = solve_inertia(H, err) / acc_scale
+                loss = loss + w_acc * (w * a_err ** 2).sum(-1).mean()
+            loss.backward()
         opt.step()
         sched.step()
         hist.append(float(loss.detach()))
@@ -131,6 +145,33 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
             for a, p in zip(avg, params):
                 p.copy_(a)
     return hist
+
+
+def _step_grads(model, base, flat: Flat, b: torch.Tensor, scale, acc_scale, w_acc: float, weighted: bool,
+                params: list, pieces: int, pool: Workers | None) -> list[torch.Tensor]:
+    """One step's gradients in `params`' .grad (the minibatch `b` in `pieces` pieces, summed in order) and each
+    piece's share of the step's loss (its rows' terms over the whole minibatch's size: the shares add up to it)."""
+    n = len(b)
+    live = [p for p in params if p.requires_grad]
+
+    def piece(rows):
+        pred, H = _forward_inertia(model, base, flat, rows) if w_acc > 0 else (_forward(model, base, flat, rows), None)
+        err = pred - flat.tau[rows]
+        r = err / (flat.mass[rows, None] * scale)
+        w = flat.weight[rows] if weighted and flat.weight is not None else 1.0
+        loss = (w * r ** 2).sum() / n
+        if w_acc > 0:
+            a_err = solve_inertia(H, err) / acc_scale
+            loss = loss + w_acc * (w * a_err ** 2).sum() / n
+        return loss.detach(), torch.autograd.grad(loss, live, allow_unused=True)
+
+    jobs = [lambda rows=rows: piece(rows) for rows in b.tensor_split(int(pieces)) if len(rows)]
+    outs = pool.map(jobs) if pool is not None else [job() for job in jobs]
+    for i, p in enumerate(live):
+        parts = [g[i] for _, g in outs if g[i] is not None]
+        if parts:
+            p.grad = functools.reduce(torch.add, parts)
+    return [share for share, _ in outs]
 
 
 def misfit_weights(model: nn.Module, flat: Flat) -> torch.Tensor:

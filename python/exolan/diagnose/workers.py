@@ -119,6 +119,25 @@ class Workers:
             return store[key]
 
 
+_RUNNING: list = [None]     # the pool of the diagnosis running in this process (`running`), None outside one
+
+
+@contextmanager
+def running(pool: Workers):
+    """`with running(pool):` the pool that fits split their minibatch steps over (`fit.train`) and that every fit
+    of the run is scheduled on."""
+    prev, _RUNNING[0] = _RUNNING[0], pool
+    try:
+        yield pool
+    finally:
+        _RUNNING[0] = prev
+
+
+def current() -> Workers | None:
+    """The running diagnosis' pool (`running`), None outside a run."""
+    return _RUNNING[0]
+
+
 class Cancelled(Exception):
     """Raised inside a fit whose result is no longer wanted (`Ahead.cancel`), at its next progress tick."""
 
