@@ -118,14 +118,7 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
         if pieces > 1:
             loss = sum(_step_grads(model, base, flat, b, scale, acc_scale, w_acc, weighted, trainable, pieces, pool))
         else:
-            pred, H = _forward_inertia(model, base, flat, b) if w_acc > 0 else (_forward(model, base, flat, b), None)
-            err = pred - flat.tau[b]
-            r = err / (flat.mass[b, None] * scale)
-            w = flat.weight[b] if weighted and flat.weight is not None else 1.0
-            loss = (w * r ** 2).sum(-1).mean()
-            if w_acc > 0:
-                a_err = solve_inertia(H, err) / acc_scale
-                loss = loss + w_acc * (w * a_err ** 2).sum(-1).mean()
+            loss = _loss(model, base, flat, b, scale, acc_scale, w_acc, weighted)
             loss.backward()
         opt.step()
         sched.step()
@@ -147,6 +140,21 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
     return hist
 
 
+def _loss(model, base, flat: Flat, b: torch.Tensor, scale, acc_scale, w_acc: float, weighted: bool,
+          of: int | None = None) -> torch.Tensor:
+    """The fit's loss at rows b: the mean over b, or (`of`) the rows' sum over `of` rows, a piece's share."""
+    pred, H = _forward_inertia(model, base, flat, b) if w_acc > 0 else (_forward(model, base, flat, b), None)
+    err = pred - flat.tau[b]
+    r = err / (flat.mass[b, None] * scale)
+    w = flat.weight[b] if weighted and flat.weight is not None else 1.0
+    mean = (lambda x: x.sum(-1).mean()) if of is None else (lambda x: x.sum() / of)
+    loss = mean(w * r ** 2)
+    if w_acc > 0:
+        a_err = solve_inertia(H, err) / acc_scale
+        loss = loss + w_acc * mean(w * a_err ** 2)
+    return loss
+
+
 def _step_grads(model, base, flat: Flat, b: torch.Tensor, scale, acc_scale, w_acc: float, weighted: bool,
                 params: list, pieces: int, pool: Workers | None) -> list[torch.Tensor]:
     """One step's gradients in `params`' .grad (the minibatch `b` in `pieces` pieces, summed in order) and each
@@ -155,14 +163,7 @@ def _step_grads(model, base, flat: Flat, b: torch.Tensor, scale, acc_scale, w_ac
     live = [p for p in params if p.requires_grad]
 
     def piece(rows):
-        pred, H = _forward_inertia(model, base, flat, rows) if w_acc > 0 else (_forward(model, base, flat, rows), None)
-        err = pred - flat.tau[rows]
-        r = err / (flat.mass[rows, None] * scale)
-        w = flat.weight[rows] if weighted and flat.weight is not None else 1.0
-        loss = (w * r ** 2).sum() / n
-        if w_acc > 0:
-            a_err = solve_inertia(H, err) / acc_scale
-            loss = loss + w_acc * (w * a_err ** 2).sum() / n
+        loss = _loss(model, base, flat, rows, scale, acc_scale, w_acc, weighted, of=n)
         return loss.detach(), torch.autograd.grad(loss, live, allow_unused=True)
 
     jobs = [lambda rows=rows: piece(rows) for rows in b.tensor_split(int(pieces)) if len(rows)]
