@@ -208,25 +208,18 @@ def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss
         ahead.cancel()
     # rule 6 (the learned base's check) before the learned path's data are compensated: a term it sets aside must
     # not be taken out of them
-    check = ((lambda: tools.learned_check(phys, raw.base, raw.ref, flat, s, phys_joints,
-                                          physics_path.learned_residual(raw.ref, flat), lambda m: log(s, m)))
-             if phys_joints else dict)
-
-    def noise_of(ss):       # the physics path decides nothing on the refit noise: one twin measures it for the report
-        return refit_noise(ss.base, ss.flat, s, ss.e_ref, ss.errors, max(int(s.n_twins), 1) if learned_joints else 1,
-                           ss.scale, workers)
-    held_terms, held_init = [], {}
-    if not learned_joints:      # physics first decides every joint: the twin needs nothing of the check, side by side
-        held_models, noise = workers.map([check, lambda: noise_of(ss)])
-    else:
-        held_models = check()   # rule 6 may set terms aside: the learned path's data are compensated after it
-        held_terms, held_init = physics_path.held_terms(phys, phys_joints) if phys_joints else ([], {})
-        if held_terms:          # the learned path tests its joints with physics first's terms taken out of the data
-            log(s, "the learned path's data: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in held_terms) +
-                   " removed at their physical sizes; its base and reference fitted again on them")
-            ss, base_source = reference(compensate.data(flat, held_terms, held_init, s.max_delay), s, model, tools,
-                                        workers, joint_ids)
-        noise = noise_of(ss)
+    held_models = tools.learned_check(phys, raw.base, raw.ref, flat, s, phys_joints,
+                                      physics_path.learned_residual(raw.ref, flat),
+                                      lambda m: log(s, m)) if phys_joints else {}
+    held_terms, held_init = physics_path.held_terms(phys, phys_joints) if phys_joints and learned_joints else ([], {})
+    if held_terms:      # the learned path tests its joints with physics first's terms taken out of the data
+        log(s, "the learned path's data: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in held_terms) +
+               " removed at their physical sizes; its base and reference fitted again on them")
+        ss, base_source = reference(compensate.data(flat, held_terms, held_init, s.max_delay), s, model, tools,
+                                    workers, joint_ids)
+    # the physics path decides nothing on the refit noise: one twin measures it for the report
+    noise = refit_noise(ss.base, ss.flat, s, ss.e_ref, ss.errors,
+                        max(int(s.n_twins), 1) if learned_joints else 1, ss.scale, workers)
     ss.sigma_r, ss.twin_d = noise["sigma"], noise.pop("twin_d")
     log(s, f"reference held-out MSE {ss.e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r "
            f"{ss.sigma_r:.3g} ({ss.scale}, {len(noise['twin_differences'])} twin refits)")
