@@ -24,6 +24,7 @@ following steps still run. Re-running the job resumes: finished training runs ar
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import os
 import subprocess
@@ -53,14 +54,14 @@ def _stream(cmd: list[str], log, timeout: float | None, keep: Path | None = None
     `keep` is given, to that file too; stopped after `timeout` s. Returns (exit code, None if stopped; the last
     lines)."""
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
-    tail: list[str] = []
+    tail: collections.deque = collections.deque(maxlen=15)
     sink = open(keep, "w") if keep is not None else None
 
     def read():
         for line in proc.stdout:
             line = line.rstrip("\n")
             log("    " + line)
-            tail[:] = (tail + [line])[-15:]
+            tail.append(line)
             if sink is not None:
                 sink.write(line + "\n")
                 sink.flush()
@@ -74,9 +75,11 @@ def _stream(cmd: list[str], log, timeout: float | None, keep: Path | None = None
         code = None
     finally:
         reader.join(timeout=5)
-        if sink is not None:
-            sink.close()
-    return code, tail
+        if not reader.is_alive():       # a grandchild may still hold the pipe: then the reader keeps both open
+            proc.stdout.close()
+            if sink is not None:
+                sink.close()
+    return code, list(tail)
 
 
 def _cli(*args: str, log, timeout: float | None = None) -> None:
