@@ -56,7 +56,7 @@ def terms_text(model) -> str:
 # effects that an inflated inertia can mimic: fitted without the acceleration term (`fresh_fit`)
 INERTIA_CONFUSED = ("actuation_delay",)
 # a fit from scratch is the longest fit and often the only one running (the extended model's): its steps in two
-# pieces take a free core where there is one (`fit.train`; the bits are the same either way)
+# pieces take a free core where there is one (`fit.train`; its bits do not depend on whether one was free)
 FRESH_PIECES = 2
 
 
