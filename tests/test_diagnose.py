@@ -202,14 +202,19 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
     if eff == "actuation_delay" and (eff, joint) not in found:
         # The report states the shortest delay these data can show (d_limit, first order at the base's misfit) and
         # warns that one within twice that limit is estimated short. The zones are the report's own claims:
-        # below d_limit a miss is what it predicts; up to 2 d_limit the delay must still be named on its joint
-        # (`ambiguous`: held-out data did not confirm it); beyond, it must be found. Nothing else may be accepted
-        # in its place. (Measured: a 24.1 ms knee delay beside a limit of 18.7 ms, seed 6220, was ambiguous.)
+        # below d_limit a miss is what it predicts; beyond 2 d_limit it must be found. Between, the learned base
+        # imitates part of a delay (docs/DIAGNOSIS.md, "A knee delay at the data's limit"), so the misfit shows a
+        # shorter one: a miss there must be named `ambiguous` or sized by the report itself under d_limit (what is
+        # left in the misfit is below what the data can show). Nothing else may be accepted in its place.
+        # (Measured: 24.1 ms beside a limit of 18.7 ms, seed 6220, ambiguous; 22.5 ms beside 19.0 ms, seed 303,
+        # sized 17.0 ms and rejected within the refit noise.)
         lim = float(rep["detection_limits"]["actuation_delay"][joint]["d_limit"])
-        named = [e for e in rep["rejected"] if (e["effect"], e["joint"]) == (eff, joint) and e["status"] == "ambiguous"]
+        own = [e for e in rep["rejected"] if (e["effect"], e["joint"]) == (eff, joint)]
+        named = [e for e in own if e["status"] == "ambiguous"]
+        short = [e for e in own if e.get("estimate") is not None and e["estimate"] < lim]
         print(f"a delay of {1e3 * value:.3g} ms beside this world's detection limit of {1e3 * lim:.3g} ms: missed")
         assert found == [] and value < 2 * lim, msg
-        assert value < lim or named, f"a delay under twice the limit must at least be named ambiguous; {msg}"
+        assert value < lim or named or short, f"a delay under twice the limit must be named or sized under it; {msg}"
         return rep
     assert (eff, joint) in found, msg
     assert found == [(eff, joint)], f"something besides the planted effect was accepted; {msg}"

@@ -77,6 +77,15 @@ def _differentiation_filter(fc: float, dt: float):
     return _design(min(4 * fc, 0.4 / dt), dt)
 
 
+def run_edges(runs, N: int, width: int) -> np.ndarray:
+    """(N,) True on the first and last `width` rows of every run."""
+    edge = np.zeros(N, bool)
+    for a, b in runs:
+        edge[a:min(b, a + width)] = True
+        edge[max(a, b - width):b] = True
+    return edge
+
+
 def exo_like(sig: Signals, x: np.ndarray) -> np.ndarray:
     """x (N,), a signal of the exo torque's kind on the flat's rows, filtered as `signals` filters τ_e and then as
     a regressor column (`lp`): what a gain's column is when x stands in for τ_e."""
@@ -122,6 +131,9 @@ def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
                   ok=valid, train=None, held=None, trial=trial, subject=subject, joint_types=tuple(flat.joint_types),
                   dt=dt, lag_of=lag_of, cutoff=fc, runs=runs_all, sos=_design(fc, dt))
     sig.tau = sig.lp(sig.tau_raw)
-    sig.ok = valid & np.isfinite(cols["q"]).all(1) & np.isfinite(sig.tau).all(1)
+    # a zero-phase filter's first and last rows of a run are shaped by its padding, not by the data: the columns
+    # built from q̈ there (both filters in series) are not the recording's (measured: docs/DIAGNOSIS.md, "Filter edges")
+    edge = run_edges(runs_all, N, pad1 + sig.sos[1])
+    sig.ok = valid & np.isfinite(cols["q"]).all(1) & np.isfinite(sig.tau).all(1) & ~edge
     sig.train, sig.held = sig.ok & ~held, sig.ok & held
     return sig
