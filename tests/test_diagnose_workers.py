@@ -194,3 +194,62 @@ def test_physics_first_with_its_extended_model_started_ahead_gives_the_same_diag
     assert [f["effect"] for f in two["findings"]] == ["viscous_damping", "coulomb_friction"]
     assert "without the terms" in two["extended"]["model"]
     assert _without_timings(one) == _without_timings(two)
+
+
+def test_the_refit_noise_with_its_first_twin_made_ahead_is_the_one_made_in_place():
+    """`procedure.reference` starts twin 0 of the refit noise beside the reference's refit (`workers.Ahead`);
+    `refit_noise` takes it from there and fits the others: the same σ_r and twin differences, bit for bit, as
+    every twin fitted in place, at one worker and at two."""
+    import copy
+    import numpy as np
+    from exolan.diagnose import fit, procedure
+    from exolan.diagnose.base import make_base
+    from exolan.diagnose.flat import prepare
+    from exolan.diagnose.settings import Settings
+    from exolan.diagnose.workers import Ahead
+    trials, _ = linear_drive(n_trials=2, seconds=4.0, seed=3, viscous=8.0, coulomb=4.0)
+    flat = prepare(trials, max_delay=0.05, seed=0)
+    base = make_base(flat, hidden=8, z_dim=2, seed=0)
+    s = Settings(steps_refit=30, batch=256, verbose=False)
+    held = flat.index("held")
+    ref = copy.deepcopy(base)
+    procedure.refit(ref, flat, s)
+
+    def errors(m):
+        e = fit.sq_errors(m, flat, held).sum(1)
+        return e, e
+    e_ref = errors(ref)[1]
+    plain = procedure.refit_noise(base, flat, s, e_ref, errors, 3, "unweighted", Workers(1))
+    for n in (1, 2):
+        pool = Workers(n)
+        first = Ahead(pool, lambda: procedure.twin_refit(base, flat, s, 0))
+        ahead = procedure.refit_noise(base, flat, s, e_ref, errors, 3, "unweighted", pool, first=first)
+        assert ahead["twin_differences"] == plain["twin_differences"] and ahead["sigma"] == plain["sigma"]
+        assert all(np.array_equal(a, b) for a, b in zip(ahead["twin_d"], plain["twin_d"]))
+    assert plain["sigma"] > 0
+
+
+def test_the_extended_model_is_fitted_from_scratch_beside_the_forward_selection(tmp_path):
+    """Step 7's fit from scratch of the accepted terms starts as soon as forward selection has accepted them, on a
+    free permit (`selection._extended_ahead`), and step 7 takes it from the fits' cache: with two workers it is made
+    during the selection, once, and the diagnosis is the one made one fit at a time."""
+    from exolan.diagnose import refits, settings
+    from exolan.diagnose.session import Tools
+    trials, _ = linear_drive(n_trials=3, seconds=8.0, seed=5, viscous=8.0, coulomb=0.0)
+
+    def report(workers):
+        made = []
+
+        def fresh(flat, s, effects, init, start, confused=None, trainer=refits.train):
+            made.append((tuple(effects), settings._STEP[0]))
+            return refits.fresh_fit(flat, s, effects, init, start, confused=confused, trainer=trainer)
+        rep = diagnose(trials, out=tmp_path / str(workers), quick=True, hidden=8, steps_base=150, steps_refit=60,
+                       physics_first=False, effects=("viscous_damping", "coulomb_friction"), verbose=False,
+                       workers=workers, tools=Tools(fresh_fit=fresh))
+        return json.loads(json.dumps({k: rep[k] for k in ("findings", "rejected", "extended")}, default=str)), made
+    (one, made1), (two, made2) = report(1), report(2)
+    assert [f["effect"] for f in one["findings"]] == ["viscous_damping"]
+    ext = (("viscous_damping", 0),)
+    assert [step for key, step in made2 if key == ext] == ["5/7 forward selection"]
+    assert [key for key, _ in made1].count(ext) == 1
+    assert _without_timings(one) == _without_timings(two)

@@ -279,7 +279,7 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     `fit` (terms -> model) and `errors` (model -> held-out squared error per row): tests pass stubs."""
     from .refits import refit_terms_frozen
     from .rules import paired_gain
-    from .workers import Workers
+    from .workers import Workers, current
 
     held = flat.index("held")
     fit = fit or (lambda terms: extended_model(base, flat, s, terms, phys, refit_terms_frozen))
@@ -291,7 +291,8 @@ def learned_check(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, lo
     combos = [keys] + ([[x for x in keys if x != k] for k in keys] if len(keys) > 1 else [])
     log(f"the learned base's check: {', '.join(f'{e}:{flat.joints[j]}' for e, j in keys)} held at their physical "
         f"sizes, the networks refitted ({len(combos)} refits)")
-    models = Workers(s.workers).map([lambda c=c: fit(c) for c in combos])
+    # the run's pool where there is one: a fit started ahead (a twin) holds one of its permits
+    models = (current() or Workers(s.workers)).map([lambda c=c: fit(c) for c in combos])
     errs = [errors(m) for m in models]
     e_ref = errors(ref)
     for i, (eff, j) in enumerate(keys):

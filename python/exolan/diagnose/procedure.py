@@ -22,7 +22,7 @@ from .results import public, strip
 from .rules import paired_gain
 from .session import Session, Tools
 from .settings import Budget, Settings, log, step
-from .workers import Workers, running
+from .workers import Ahead, Workers, running
 
 __all__ = ["Settings", "Tools", "load_trials", "run"]
 
@@ -117,15 +117,25 @@ def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
     return adequate
 
 
-def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, workers: Workers | None = None) -> dict:
+def twin_refit(base, flat, s: Settings, k: int):
+    """Twin k of the reference: the same warm refit of the base with another minibatch order (seed offset 2 + k)."""
+    m = copy.deepcopy(base)
+    refit(m, flat, s, 2 + k)
+    return m
+
+
+def refit_noise(base, flat, s: Settings, e_ref, errors, n: int, scale: str, workers: Workers | None = None,
+                first: Ahead | None = None) -> dict:
     """The refit noise σ_r: the RMS held-out difference between the reference and `n` twin refits that differ
-    from it only in their minibatch order (rule 2)."""
+    from it only in their minibatch order (rule 2). `first`: twin 0, started beside the reference's refit
+    (`reference`); the same bits as made here."""
     def twin(k):
-        m = copy.deepcopy(base)
-        refit(m, flat, s, 2 + k)
-        return errors(m)[1]
+        return errors(first.result() if k == 0 and first is not None else twin_refit(base, flat, s, k))[1]
+    order = list(range(1, n)) + [0]        # twin 0 last: started ahead, it is most likely made when asked for
+    made = dict(zip(order, (workers or Workers()).map([lambda k=k: twin(k) for k in order])))
     deltas, twin_d, floor = [], [], None
-    for k, e_twin in enumerate((workers or Workers()).map([lambda k=k: twin(k) for k in range(n)])):
+    for k in range(n):
+        e_twin = made[k]
         if k == 0:
             floor = paired_gain(e_ref, e_twin, s)
         deltas.append(float((e_ref - e_twin).mean()))
@@ -142,13 +152,16 @@ def reference(flat, s: Settings, model, tools: Tools, workers: Workers, joint_id
     base, base_start, base_source = fit_base(flat, s, model, start)
     held = flat.index("held")
     w_held = flat.weight[held].numpy().astype(np.float64) if s.decide_weighted and flat.weight is not None else None
+    # every path measures the refit noise with at least twin 0: on the core the reference's refit leaves free
+    first_twin = Ahead(workers, lambda: twin_refit(base, flat, s, 0))
     ref = copy.deepcopy(base)
     refit(ref, flat, s)
     ss = Session(flat=flat, s=s, tools=tools, held=held, w_held=w_held,
                  scale="misfit-weighted" if w_held is not None else "unweighted", base=base, base_start=base_start,
                  ref=ref, e_ref_user=None, e_ref=None, sigma_r=float("nan"), twin_d=[], joint_ids=joint_ids,
                  budget=Budget(s.alpha, sum(1 for eff in s.effects for _ in joint_ids
-                                            if flat.has_exo or not LIBRARY[eff].needs_exo)), workers=workers)
+                                            if flat.has_exo or not LIBRARY[eff].needs_exo)), workers=workers,
+                 first_twin=first_twin)
     ss.e_ref_user, ss.e_ref = ss.errors(ref)
     return ss, base_source
 
@@ -213,13 +226,14 @@ def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss
                                       lambda m: log(s, m)) if phys_joints else {}
     held_terms, held_init = physics_path.held_terms(phys, phys_joints) if phys_joints and learned_joints else ([], {})
     if held_terms:      # the learned path tests its joints with physics first's terms taken out of the data
+        raw.first_twin.cancel()
         log(s, "the learned path's data: " + ", ".join(f"{e}:{flat.joints[j]}" for e, j in held_terms) +
                " removed at their physical sizes; its base and reference fitted again on them")
         ss, base_source = reference(compensate.data(flat, held_terms, held_init, s.max_delay), s, model, tools,
                                     workers, joint_ids)
     # the physics path decides nothing on the refit noise: one twin measures it for the report
     noise = refit_noise(ss.base, ss.flat, s, ss.e_ref, ss.errors,
-                        max(int(s.n_twins), 1) if learned_joints else 1, ss.scale, workers)
+                        max(int(s.n_twins), 1) if learned_joints else 1, ss.scale, workers, first=ss.first_twin)
     ss.sigma_r, ss.twin_d = noise["sigma"], noise.pop("twin_d")
     log(s, f"reference held-out MSE {ss.e_ref_user.mean():.4g} ({torque_unit(flat)})²; refit noise σ_r "
            f"{ss.sigma_r:.3g} ({ss.scale}, {len(noise['twin_differences'])} twin refits)")

@@ -14,6 +14,7 @@ from .rules import gci, invariance_reason
 from .screen import screen
 from .secondlook import paired_record
 from .subjects import gated, with_estimate, with_init
+from .workers import Ahead
 
 
 @dataclass
@@ -29,7 +30,7 @@ def forward(ss, results: list) -> Selection:
     from it makes both ambiguous (or, nested, the simpler is taken); every remaining candidate must then add a
     gain on top of the accepted terms and of the better term of each ambiguous set."""
     pool = [e for e in results if e.get("passes") and e.get("status") is None]
-    sel = Selection()
+    sel, ahead = Selection(), None
     while pool:
         pool.sort(key=lambda e: -e["rank"])
         top = pool.pop(0)
@@ -37,6 +38,8 @@ def forward(ss, results: list) -> Selection:
         top = _settle(ss, top, pool, j, sel)
         sel.given.append((top["effect"], j))
         sel.given_init = with_estimate(sel.given_init, top, j)
+        if ahead is None and ss.from_scratch and sel.accepted and sel.given == sel.accepted:
+            ahead = _extended_ahead(ss, sel)
         if not pool:
             break
         # refit the given set once (the reference for the conditional tests), then each remaining one on top
@@ -44,10 +47,21 @@ def forward(ss, results: list) -> Selection:
         refit(cur, ss.flat, ss.s)
         ss.warm_fits[tuple(sorted(sel.given))] = cur
         cur_u, cur_e = ss.errors(cur)
-        for e in list(pool):
-            if not further(ss, e, sel, cur, cur_u, cur_e):
-                pool.remove(e)
+        # each remaining one against the same given set: independent, side by side (the same bits in any order)
+        adds = ss.workers.map([lambda e=e: further(ss, e, sel, cur, cur_u, cur_e) for e in pool])
+        pool[:] = [e for e, a in zip(pool, adds) if a]
+    if ahead is not None and ahead[0] != tuple(sorted(sel.accepted)):
+        ahead[1].cancel()
     return sel
+
+
+def _extended_ahead(ss, sel: Selection) -> tuple:
+    """Step 7's fit from scratch of the terms accepted so far (`extended.joint_fit` asks the fits' cache for the
+    same terms and starts), started while the selection tests the rest: most often nothing more is accepted, and
+    the selection's lone warm refits leave a core free. The cache makes it once, so the bits are the same.
+    Returns (its terms, the `workers.Ahead`)."""
+    key, init = tuple(sorted(sel.accepted)), dict(sel.acc_init)
+    return key, Ahead(ss.workers, lambda: ss.cache.fresh(key, init))
 
 
 def _settle(ss, top, pool: list, j: int, sel: Selection):

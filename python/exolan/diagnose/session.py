@@ -13,7 +13,7 @@ from . import compensate, inference, physics_path, refits, rules, secondlook, su
 from .candidates import LIBRARY
 from .flat import Flat
 from .settings import Budget, Settings, log
-from .workers import Workers
+from .workers import Ahead, Workers
 
 
 @dataclass
@@ -62,6 +62,7 @@ class Session:
     fitted: dict = field(default_factory=dict)      # (effect, j) -> (model that stands for it, decision errors)
     warm_fits: dict = field(default_factory=dict)   # sorted terms -> the reference refitted warm with them
     workers: Workers = field(default_factory=Workers)  # independent fits side by side (one per candidate, per seed)
+    first_twin: Ahead | None = None  # twin 0 of the refit noise, started beside the reference's refit (`procedure`)
 
     @property
     def n_candidates(self) -> int:

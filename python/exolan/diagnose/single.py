@@ -27,7 +27,8 @@ def looks(ss, effect: str) -> int:
 
 def fit_candidates(ss) -> list:
     """Every (effect, joint) the data can test: screened, and where the screen passes refitted and judged, the
-    candidates side by side (`Session.workers`: each decision reads only the reference's, so the order is free)."""
+    candidates side by side (`Session.workers`: each screen and decision reads only the reference's, so the order
+    is free)."""
     results, tasks = [], []
     for effect in ss.s.effects:
         c = LIBRARY[effect]
@@ -37,18 +38,22 @@ def fit_candidates(ss) -> list:
             if c.needs_exo and not ss.flat.has_exo:
                 entry.update(status="rejected", reason="no exoskeleton torque recorded: not testable")
                 continue
-            sc = screen(ss.ref, ss.flat, effect, j, n_boot=max(ss.s.n_boot // 3, 100), seed=ss.s.seed)
-            entry.screen = {k: v for k, v in sc.items() if k in ("gain", "ci", "theta", "vs", "d", "form")}
-            if not sc["passes"]:
-                entry.update(status="absorbable" if c.kind == "absorbable" else "rejected",
-                             reason=("a flexible conservative model represents this effect; " if c.kind == "absorbable"
-                                     else "") + "screen: " + sc["reason"], heldout_gain=sc["gain"],
-                             heldout_gain_ci=sc["ci"])
-                ss.log(f"{effect:18s} {ss.flat.joints[j]:9s} screen gain {gci(sc)}: {sc['reason']}")
-                continue
-            tasks.append(lambda entry=entry, effect=effect, j=j, sc=sc: fit_candidate(ss, entry, effect, j, sc))
+            tasks.append(lambda entry=entry, effect=effect, j=j: screened(ss, entry, effect, j))
     ss.workers.map(tasks)
     return results
+
+
+def screened(ss, entry, effect: str, j: int) -> None:
+    """One candidate's post-hoc screen (`screen`) and, where it passes, its warm refit and rules (`fit_candidate`)."""
+    c = LIBRARY[effect]
+    sc = screen(ss.ref, ss.flat, effect, j, n_boot=max(ss.s.n_boot // 3, 100), seed=ss.s.seed)
+    entry.screen = {k: v for k, v in sc.items() if k in ("gain", "ci", "theta", "vs", "d", "form")}
+    if sc["passes"]:
+        return fit_candidate(ss, entry, effect, j, sc)
+    entry.update(status="absorbable" if c.kind == "absorbable" else "rejected",
+                 reason=("a flexible conservative model represents this effect; " if c.kind == "absorbable"
+                         else "") + "screen: " + sc["reason"], heldout_gain=sc["gain"], heldout_gain_ci=sc["ci"])
+    ss.log(f"{effect:18s} {ss.flat.joints[j]:9s} screen gain {gci(sc)}: {sc['reason']}")
 
 
 def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
