@@ -177,6 +177,34 @@ def test_a_fit_started_ahead_stops_at_its_next_progress_tick_when_cancelled():
     tick(0, 0.0)                                # a fit on another thread is not cancelled with it
 
 
+def test_work_started_ahead_and_not_taken_stops_when_the_run_ends_even_on_an_error():
+    """Every `Ahead` started on a run's pool is cancelled when the run leaves `workers.running`, also where the
+    run raised before anyone took its result: no fit keeps a core busy after its diagnosis."""
+    from exolan.diagnose.settings import Settings, heartbeat
+    from exolan.diagnose.workers import Ahead, Cancelled, running
+    w, steps = Workers(2), []
+
+    def fit():
+        tick = heartbeat(Settings(verbose=False), "a fit", 10 ** 6)
+        for i in range(10 ** 6):
+            steps.append(i)
+            tick(i, 0.0)
+            time.sleep(0.001)
+        return "finished"
+    with pytest.raises(RuntimeError):
+        with running(w):
+            ahead = Ahead(w, fit)
+            time.sleep(0.1)
+            raise RuntimeError("the run failed")
+    time.sleep(0.5)                             # a tick is 1 ms: a fit still running would be ~500 steps on
+    stopped = len(steps)
+    time.sleep(0.3)
+    assert 0 < stopped == len(steps)
+    with pytest.raises(Cancelled):
+        ahead.result()
+    assert w.map([lambda: 1, lambda: 2]) == [1, 2]
+
+
 def test_physics_first_with_its_extended_model_started_ahead_gives_the_same_diagnosis(tmp_path, capsys):
     """With a second worker, physics first's extended model is fitted beside the base fit (`physics_path.
     extended_ahead`) and handed over where the final terms are those it was started for: the diagnosis is the one

@@ -194,16 +194,12 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
         return p
 
     step(s, "1/7 base and reference" + (" beside the parametric base" if s.physics_first else ""))
-    with running(workers):
-        try:
-            # independent (numpy and torch, each on one thread): side by side where a second worker is free
-            (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
-                                                   parametric if s.physics_first else lambda: None])
-            return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
-                                    ahead[0] if ahead else None)
-        finally:
-            for a in ahead:
-                a.cancel()
+    with running(workers):      # which also stops, on leaving, whatever was started ahead and not taken
+        # independent (numpy and torch, each on one thread): side by side where a second worker is free
+        (ss, base_source), phys = workers.map([lambda: reference(flat, s, model, tools, workers, joint_ids, start),
+                                               parametric if s.physics_first else lambda: None])
+        return _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys,
+                                ahead[0] if ahead else None)
 
 
 def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss, base_source, phys, ahead) -> dict:

@@ -27,6 +27,7 @@ class Workers:
         self._held = threading.local()
         self._guard = threading.Lock()
         self._locks: dict = {}
+        self._ahead: list = []      # every `Ahead` started on this pool (`running` cancels them when the run ends)
 
     def _holds(self) -> bool:
         return getattr(self._held, "permit", False)
@@ -125,12 +126,14 @@ _RUNNING: list = [None]     # the pool of the diagnosis running in this process 
 @contextmanager
 def running(pool: Workers):
     """`with running(pool):` the pool that fits split their minibatch steps over (`fit.train`) and that every fit
-    of the run is scheduled on."""
+    of the run is scheduled on; on leaving, every `Ahead` started on it is cancelled."""
     prev, _RUNNING[0] = _RUNNING[0], pool
     try:
         yield pool
     finally:
         _RUNNING[0] = prev
+        for ahead in pool._ahead:    # work started ahead that nobody took (the run ended, or raised) stops
+            ahead.cancel()
 
 
 def current() -> Workers | None:
@@ -161,6 +164,8 @@ class Ahead:
     def __init__(self, workers: Workers, make: Callable):
         self._workers, self._stop, self._done = workers, threading.Event(), threading.Event()
         self._out, self._exc = None, None
+        with workers._guard:
+            workers._ahead.append(self)
 
         def work():
             workers._take()
