@@ -114,8 +114,10 @@ def measure(tree: Path, data: str, config: str, threads: int, batches: int, batc
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", config, "--data", data,
            "--threads", str(threads), "--batches", str(batches), "--batch-size", str(batch_size),
            "--device", device]
-    out = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if done.returncode:                                # say why, not only that the worker failed
+        raise SystemExit(f"bench worker ({config}, {threads} threads, {tree}) failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
@@ -136,7 +138,7 @@ def main() -> None:
                                 args.device)))
         return
     data = Path(args.data) if args.data else ROOT / "out" / "bench_world"
-    if not args.data and not (data / "subjects.csv").exists():
+    if not (data / "subjects.csv").exists():         # a missing world is made once, wherever it was asked for
         from exolan.world import simulate
 
         print(f"simulating the training split into {data} (once) ...", flush=True)
