@@ -11,8 +11,8 @@ alternating within every repeat so that a busy machine slows both alike; a figur
 a git worktree under out/bench_trees/ and measured twice: as it ships, and with this tree's process settings
 (exolan/runtime.py: OpenMP's wait policy, glibc's allocator thresholds) given as environment variables, which
 says how much of a gain is the code.
-Without --data it simulates the paper's training split (21 users x the 7 training tasks, 6 s per trial) into
-out/bench_world once. A benchmark script, not a test.
+Without --data (or with a --data folder that is missing or empty) it simulates the paper's training split (21
+users x the 7 training tasks, 6 s per trial) there once (out/bench_world by default). A benchmark script, not a test.
 """
 from __future__ import annotations
 
@@ -138,7 +138,9 @@ def main() -> None:
                                 args.device)))
         return
     data = Path(args.data) if args.data else ROOT / "out" / "bench_world"
-    if not (data / "subjects.csv").exists():         # a missing world is made once, wherever it was asked for
+    # a missing world is made once; a --data folder that holds anything is the user's data, never written into
+    given_empty = args.data and not (data.exists() and any(data.iterdir()))
+    if given_empty or (not args.data and not (data / "subjects.csv").exists()):
         from exolan.world import simulate
 
         print(f"simulating the training split into {data} (once) ...", flush=True)
