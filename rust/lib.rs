@@ -16,6 +16,7 @@ pub mod delan;
 pub mod dynamics;
 pub mod encoder;
 pub mod error;
+pub mod grad;
 pub mod ext;
 mod lanes;
 pub mod lane_rollout;
@@ -47,3 +48,5 @@ mod python;
 mod python_conv;
 #[cfg(feature = "python")]
 mod python_engine;
+#[cfg(feature = "python")]
+mod python_grad;

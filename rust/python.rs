@@ -370,5 +370,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sum, m)?)?;
     m.add_function(wrap_pyfunction!(scale_in_place, m)?)?;
     m.add_class::<Engine>()?;
+    m.add_function(wrap_pyfunction!(crate::python_grad::terms_forward, m)?)?;
+    m.add_class::<crate::python_grad::TermsCall>()?;
     Ok(())
 }

@@ -18,6 +18,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from . import native_terms
+
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
 
@@ -248,6 +250,9 @@ class Lagrangian(nn.Module):
         z = self._z(z, q)
         lead, (qf, qdf, zf) = self._flatten(q, qd, z)
         N, n = qf.shape
+        if native_terms.usable(self, qf):
+            Lm, H, c, g = native_terms.factor_terms(self, qf, qdf, zf)
+            return (Lm.reshape(*lead, n, n), H.reshape(*lead, n, n), c.reshape(*lead, n), g.reshape(*lead, n))
         phi, tphi = self.features.tangents(qf)                                   # (N, d_phi), (N, n, d_phi)
         x = torch.cat([phi, zf], dim=-1) if self.z_dim else phi
         u, du = mlp_tangents(self.L, x, tphi)
