@@ -17,6 +17,39 @@ def sum(xs: _F64) -> float:
 def scale_in_place(xs: _F64, k: float) -> int:
     """Multiply a contiguous 1-D array by k in place; returns the address of the data it used."""
 
+_Arr = npt.NDArray[np.float32] | npt.NDArray[np.float64]
+
+def terms_forward(
+    joint_types: list[str],
+    dz: int,
+    softplus_offset: float,
+    v_scale: float,
+    l_weights: list[_Arr],
+    v_weights: list[_Arr],
+    q: _Arr,
+    qd: _Arr,
+    z: _Arr,
+    l_out: _Arr,
+    h_out: _Arr,
+    c_out: _Arr,
+    g_out: _Arr,
+    keep: bool,
+    threads: int,
+) -> TermsCall | None:
+    """The training kernel (rust/grad): L, H (N, n, n), c, g (N, n) written into the given arrays from q, qd (N, n),
+    z (N, dz) and the inertia and potential networks' [W, b, ...] (float32 or float64, all alike); with `keep`, the
+    call to take the reverse pass from (python/exolan/native_terms.py)."""
+
+class TermsCall:
+    def backward(
+        self, dl: _Arr, dh: _Arr, dc: _Arr, dg: _Arr, dq: _Arr, dqd: _Arr, dz: _Arr, threads: int
+    ) -> tuple[list[tuple[_Arr, _Arr]], list[tuple[_Arr, _Arr]]]:
+        """Gradients of q, qd, z written into dq, dqd, dz from those of L, H, c, g; returns the weight gradients
+        [(dW, db), ...] of the inertia and the potential network."""
+    @property
+    def samples(self) -> int:
+        """Samples of the forward pass."""
+
 class Engine:
     """A loaded model; batch methods take arrays with the leading dimension N or B in place."""
 

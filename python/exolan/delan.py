@@ -216,6 +216,9 @@ class Lagrangian(nn.Module):
     def inertia(self, q: torch.Tensor, z: torch.Tensor | None = None) -> torch.Tensor:
         z = self._z(z, q)
         lead, (qf, zf) = self._flatten(q, z)
+        if native_terms.usable(self, qf):
+            # the same bits as the H of `factor_terms` (the fits use either)
+            return native_terms.factor_terms(self, qf, torch.zeros_like(qf), zf)[1].reshape(*lead, self.n, self.n)
         phi = self.features.phi(qf)
         x = torch.cat([phi, zf], dim=-1) if self.z_dim else phi
         Lm, _ = self._factor(mlp_forward(self.L, x), None)

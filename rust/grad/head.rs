@@ -2,7 +2,84 @@
 //! (softplus + offset on the diagonal), H = L Lᵀ, c = Ḣ q̇ − ½ ∂(q̇ᵀ H q̇)/∂q and g = ∂V/∂q, and the
 //! reverse of each step. The same formulas as `delan.Lagrangian.factor_terms` (python/exolan/delan.py).
 
+use std::ops::{Add, Mul, Neg, Sub};
+
 use crate::real::Real;
+
+/// The arithmetic the head needs: a float (`Real`), or `Lanes` of them, so that one tile's samples go
+/// through the head side by side in vector registers.
+pub(crate) trait Num: Copy + Default + Add<Output = Self> + Sub<Output = Self> + Mul<Output = Self> + Neg<Output = Self> {
+    fn of(x: f64) -> Self;
+    fn softplus_sigmoid(self) -> (Self, Self);
+}
+
+impl<T: Real> Num for T {
+    #[inline(always)]
+    fn of(x: f64) -> T {
+        <T as Real>::of(x)
+    }
+    #[inline(always)]
+    fn softplus_sigmoid(self) -> (T, T) {
+        <T as Real>::softplus_sigmoid(self)
+    }
+}
+
+/// L samples' values of one quantity, operated on lane by lane.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Lanes<T, const L: usize>(pub [T; L]);
+
+impl<T: Real, const L: usize> Default for Lanes<T, L> {
+    #[inline(always)]
+    fn default() -> Self {
+        Lanes([T::default(); L])
+    }
+}
+
+macro_rules! lane_op {
+    ($tr:ident, $f:ident, $op:tt) => {
+        impl<T: Real, const L: usize> $tr for Lanes<T, L> {
+            type Output = Self;
+            #[inline(always)]
+            fn $f(self, o: Self) -> Self {
+                let mut r = self.0;
+                for l in 0..L {
+                    r[l] = self.0[l] $op o.0[l];
+                }
+                Lanes(r)
+            }
+        }
+    };
+}
+lane_op!(Add, add, +);
+lane_op!(Sub, sub, -);
+lane_op!(Mul, mul, *);
+
+impl<T: Real, const L: usize> Neg for Lanes<T, L> {
+    type Output = Self;
+    #[inline(always)]
+    fn neg(self) -> Self {
+        let mut r = self.0;
+        for l in 0..L {
+            r[l] = -self.0[l];
+        }
+        Lanes(r)
+    }
+}
+
+impl<T: Real, const L: usize> Num for Lanes<T, L> {
+    #[inline(always)]
+    fn of(x: f64) -> Self {
+        Lanes([<T as Real>::of(x); L])
+    }
+    #[inline(always)]
+    fn softplus_sigmoid(self) -> (Self, Self) {
+        let (mut a, mut b) = (self.0, self.0);
+        for l in 0..L {
+            (a[l], b[l]) = <T as Real>::softplus_sigmoid(self.0[l]);
+        }
+        (Lanes(a), Lanes(b))
+    }
+}
 
 /// Most joints a kernel call handles (the arrays below are sized for it).
 pub(crate) const NMAX: usize = 3;
@@ -31,7 +108,7 @@ fn lower(n: usize) -> impl Iterator<Item = (usize, usize, usize)> {
 }
 
 #[inline(always)]
-fn factor<T: Real>(n: usize, o: &Outs<T>, offset: T) -> Factor<T> {
+fn factor<T: Num>(n: usize, o: &Outs<T>, offset: T) -> Factor<T> {
     let z = T::default();
     let mut f = Factor { l: [[z; NMAX]; NMAX], ld: [[[z; NMAX]; NMAX]; NMAX], sig: [z; NMAX] };
     for i in 0..n {
@@ -59,7 +136,7 @@ struct Coriolis<T> {
 }
 
 #[inline(always)]
-fn coriolis_parts<T: Real>(n: usize, f: &Factor<T>, qd: &[T]) -> Coriolis<T> {
+fn coriolis_parts<T: Num>(n: usize, f: &Factor<T>, qd: &[T]) -> Coriolis<T> {
     let z = T::default();
     let mut p = Coriolis { w: [z; NMAX], ldq: [[z; NMAX]; NMAX], v: [z; NMAX] };
     for i in 0..n {
@@ -84,7 +161,7 @@ fn coriolis_parts<T: Real>(n: usize, f: &Factor<T>, qd: &[T]) -> Coriolis<T> {
 /// potential network's q_k-tangent (g = v_scale · gv).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn forward<T: Real>(n: usize, o: &Outs<T>, gv: &[T], qd: &[T], offset: T, v_scale: T,
+pub(crate) fn forward<T: Num>(n: usize, o: &Outs<T>, gv: &[T], qd: &[T], offset: T, v_scale: T,
                                l_out: &mut [T], h_out: &mut [T], c_out: &mut [T], g_out: &mut [T]) {
     let f = factor(n, o, offset);
     let p = coriolis_parts(n, &f, qd);
@@ -126,7 +203,7 @@ pub(crate) struct Back<T> {
 /// diagonal are ignored: they are structural zeros).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn backward<T: Real>(n: usize, o: &Outs<T>, qd: &[T], offset: T, v_scale: T,
+pub(crate) fn backward<T: Num>(n: usize, o: &Outs<T>, qd: &[T], offset: T, v_scale: T,
                                 dl: &[T], dh: &[T], dc: &[T], dg: &[T]) -> Back<T> {
     let z = T::default();
     let f = factor(n, o, offset);

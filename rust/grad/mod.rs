@@ -20,7 +20,7 @@ use crate::model::JointType;
 use crate::pool::{Chunks, Pool};
 use crate::real::Real;
 use crate::simd::{simd_dispatch, Simd};
-use head::{Outs, MMAX, NMAX};
+use head::{Lanes, Num, Outs, MMAX, NMAX};
 use net::{BackBufs, Layer, Net, Tile};
 
 /// Samples per tile: a tile's activations stay in the core's caches through a layer's three products.
@@ -327,21 +327,55 @@ fn tile_inputs<T: Real>(k: &Kernel<T>, q: &[T], z: &[T], first: usize, count: us
     }
 }
 
-/// The network outputs of sample r of a tile from the output blocks of its tape.
+/// Samples that go through the head side by side (a tile is a whole number of such groups).
+const HL: usize = 16;
+type Ln<T> = Lanes<T, HL>;
+const _: () = assert!(TILE % HL == 0);
+
+/// The network outputs of samples r0..r0+HL of a tile from the output blocks of its tape.
 #[inline(always)]
-fn outs_of<T: Real>(k: &Kernel<T>, lo: &[T], vo: &[T], r: usize) -> (Outs<T>, [T; NMAX]) {
+fn outs_of<T: Real>(k: &Kernel<T>, lo: &[T], vo: &[T], r0: usize) -> (Outs<Ln<T>>, [Ln<T>; NMAX]) {
     let (n, m) = (k.n, k.n * (k.n + 1) / 2);
     let (opl, opv) = (k.l.layers.last().unwrap().op, k.v.layers.last().unwrap().op);
-    let z = T::default();
+    let z = Ln::<T>::default();
     let mut o = Outs { u: [z; MMAX], ud: [[z; MMAX]; NMAX] };
     let mut gv = [z; NMAX];
-    o.u[..m].copy_from_slice(&lo[r * opl..r * opl + m]);
-    for kk in 0..n {
-        let row = (1 + kk) * TILE + r;
-        o.ud[kk][..m].copy_from_slice(&lo[row * opl..row * opl + m]);
-        gv[kk] = vo[row * opv];
+    for l in 0..HL {
+        let r = r0 + l;
+        for i in 0..m {
+            o.u[i].0[l] = lo[r * opl + i];
+        }
+        for kk in 0..n {
+            let row = (1 + kk) * TILE + r;
+            for i in 0..m {
+                o.ud[kk][i].0[l] = lo[row * opl + i];
+            }
+            gv[kk].0[l] = vo[row * opv];
+        }
     }
     (o, gv)
+}
+
+/// Rows r0.. of an (N × w) array as lanes (zero past `count` rows).
+#[inline(always)]
+fn gather<T: Real, const W: usize>(a: &[T], w: usize, first: usize, count: usize) -> [Ln<T>; W] {
+    let mut out = [Ln::<T>::default(); W];
+    for l in 0..HL.min(count) {
+        for i in 0..w {
+            out[i].0[l] = a[(first + l) * w + i];
+        }
+    }
+    out
+}
+
+/// Lanes back into rows first.. of an (N × w) array (the first `count` lanes).
+#[inline(always)]
+fn scatter<T: Real>(v: &[Ln<T>], w: usize, a: &mut [T], first: usize, count: usize) {
+    for l in 0..HL.min(count) {
+        for i in 0..w {
+            a[(first + l) * w + i] = v[i].0[l];
+        }
+    }
 }
 
 #[inline(always)]
@@ -368,12 +402,19 @@ fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &FwdJob<T>, ci
         net::forward::<T, FMA, WIDE>(&k.l, &tile, lt, &mut xs);
         net::forward::<T, FMA, WIDE>(&k.v, &tile, vt, &mut xs);
         let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[k.v.out_offset(rows)..]);
-        for r in 0..count {
-            let (o, gv) = outs_of(k, lo_t, vo_t, r);
-            let e = ti * TILE + r;
-            head::forward(n, &o, &gv, &job.qd[(first + r) * n..(first + r + 1) * n], k.offset, k.v_scale,
-                          &mut lo[e * n * n..(e + 1) * n * n], &mut ho[e * n * n..(e + 1) * n * n],
-                          &mut co[e * n..(e + 1) * n], &mut go[e * n..(e + 1) * n]);
+        let of = |x: T| Ln::<T>::of(x.to_f64());
+        for r0 in (0..count).step_by(HL) {
+            let (o, gv) = outs_of(k, lo_t, vo_t, r0);
+            let c = count - r0;
+            let qd = gather::<T, NMAX>(job.qd, n, first + r0, c);
+            let z = Ln::<T>::default();
+            let (mut l, mut h, mut cc, mut g) = ([z; NMAX * NMAX], [z; NMAX * NMAX], [z; NMAX], [z; NMAX]);
+            head::forward(n, &o, &gv, &qd, of(k.offset), of(k.v_scale), &mut l, &mut h, &mut cc, &mut g);
+            let e = ti * TILE + r0;
+            scatter(&l[..n * n], n * n, lo, e, c);
+            scatter(&h[..n * n], n * n, ho, e, c);
+            scatter(&cc[..n], n, co, e, c);
+            scatter(&g[..n], n, go, e, c);
         }
     }
 }
@@ -406,21 +447,29 @@ fn backward_chunk<T: KernelReal, const FMA: bool, const WIDE: bool>(job: &BwdJob
         let mut gu_l = vec![T::default(); rows * opl];
         let mut gu_v = vec![T::default(); rows * opv];
         let m = n * (n + 1) / 2;
-        for r in 0..count {
-            let e = first + r;
-            let (o, _) = outs_of(k, lo_t, vo_t, r);
-            let nn = n * n;
-            let back = head::backward(n, &o, &job.tape.qd[e * n..(e + 1) * n], k.offset, k.v_scale,
-                                      &job.dl[e * nn..(e + 1) * nn], &job.dh[e * nn..(e + 1) * nn],
-                                      &job.dc[e * n..(e + 1) * n], &job.dg[e * n..(e + 1) * n]);
-            gu_l[r * opl..r * opl + m].copy_from_slice(&back.u[..m]);
-            for kk in 0..n {
-                let row = (1 + kk) * TILE + r;
-                gu_l[row * opl..row * opl + m].copy_from_slice(&back.ud[kk][..m]);
-                gu_v[row * opv] = back.gv[kk];
+        let of = |x: T| Ln::<T>::of(x.to_f64());
+        let nn = n * n;
+        for r0 in (0..count).step_by(HL) {
+            let (o, _) = outs_of(k, lo_t, vo_t, r0);
+            let (c, e) = (count - r0, first + r0);
+            let qd = gather::<T, NMAX>(&job.tape.qd, n, e, c);
+            let (dl, dh) = (gather::<T, { NMAX * NMAX }>(job.dl, nn, e, c), gather::<T, { NMAX * NMAX }>(job.dh, nn, e, c));
+            let (dc, dg) = (gather::<T, NMAX>(job.dc, n, e, c), gather::<T, NMAX>(job.dg, n, e, c));
+            let back = head::backward(n, &o, &qd, of(k.offset), of(k.v_scale), &dl, &dh, &dc, &dg);
+            for l in 0..HL {
+                let r = r0 + l;
+                for i in 0..m {
+                    gu_l[r * opl + i] = back.u[i].0[l];
+                }
+                for kk in 0..n {
+                    let row = (1 + kk) * TILE + r;
+                    for i in 0..m {
+                        gu_l[row * opl + i] = back.ud[kk][i].0[l];
+                    }
+                    gu_v[row * opv] = back.gv[kk].0[l];
+                }
             }
-            let el = (ti * TILE + r) * n;
-            dqd[el..el + n].copy_from_slice(&back.qd[..n]);
+            scatter(&back.qd[..n], n, dqd, ti * TILE + r0, c);
         }
         gx.fill(T::default());
         gdphi.fill(T::default());

@@ -127,7 +127,16 @@ pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, 
                 dst.fill(T::default());
             }
         }
-        gemm::<T, FMA, WIDE>(rows, w, no, xs, w, 1, &next.wt, no, b, no, true);
+        if next.out <= NARROW {
+            for r in 0..rows {
+                let x = &xs[r * w..(r + 1) * w];
+                for j in 0..next.out {
+                    b[r * no + j] = b[r * no + j] + dot::<T, FMA>(x, &next.w[j * w..(j + 1) * w]);
+                }
+            }
+        } else {
+            gemm::<T, FMA, WIDE>(rows, w, no, xs, w, 1, &next.wt, no, b, no, true);
+        }
         a = b;
         rest = r2;
     }
@@ -195,10 +204,36 @@ pub(crate) fn backward<T: Real, const FMA: bool, const WIDE: bool>(
         }
         let prev = &tape[toff[li - 1]..toff[li - 1] + rows * ip];
         layer_input::<T, FMA>(prev, t, n, ip, xs);
-        gemm::<T, FMA, WIDE>(op, rows, ip, g, 1, op, xs, ip, dw, ip, true);
-        gemm::<T, FMA, WIDE>(rows, op, ip, g, op, 1, &layer.w, ip, gb, ip, false);
+        if layer.out <= NARROW {
+            narrow_back::<T, FMA>(layer, rows, g, xs, dw, gb);
+        } else {
+            gemm::<T, FMA, WIDE>(op, rows, ip, g, 1, op, xs, ip, dw, ip, true);
+            gemm::<T, FMA, WIDE>(rows, op, ip, g, op, 1, &layer.w, ip, gb, ip, false);
+        }
         tanh_back::<T, FMA>(prev, t, n, ip, gb, sb);
         std::mem::swap(g, gb);
+    }
+}
+
+/// Layers with at most this many outputs (the networks' heads: L's n(n+1)/2 entries, V's one) run as dot
+/// products and row updates instead of a product padded to the lane count.
+const NARROW: usize = 6;
+
+/// The reverse of a narrow layer: dW[j] += Σ_r ḡ[r][j] x[r] and x̄[r] = Σ_j ḡ[r][j] W[j] (x̄ overwritten).
+#[inline(always)]
+fn narrow_back<T: Real, const FMA: bool>(layer: &Layer<T>, rows: usize, g: &[T], xs: &[T], dw: &mut [T], gx: &mut [T]) {
+    let (ip, op) = (layer.ip, layer.op);
+    for r in 0..rows {
+        let x = &xs[r * ip..(r + 1) * ip];
+        let gr = &mut gx[r * ip..(r + 1) * ip];
+        gr.fill(T::default());
+        for j in 0..layer.out {
+            let gj = g[r * op + j];
+            for ((d, xx), (y, w)) in dw[j * ip..(j + 1) * ip].iter_mut().zip(x).zip(gr.iter_mut().zip(&layer.w[j * ip..(j + 1) * ip])) {
+                *d = T::madd::<FMA>(gj, *xx, *d);
+                *y = T::madd::<FMA>(gj, *w, *y);
+            }
+        }
     }
 }
 
@@ -239,13 +274,13 @@ fn first_layer<T: Real, const FMA: bool, const WIDE: bool>(layer: &Layer<T>, til
             let gr = &g[((1 + k) * t + r) * op..((1 + k) * t + r + 1) * op];
             let i = (r * n + k) * 2;
             let (da, db) = (tile.dphi[i], tile.dphi[i + 1]);
-            for o in 0..op {
-                cola[o] = T::madd::<FMA>(gr[o], da, cola[o]);
+            for (c, x) in cola.iter_mut().zip(gr) {
+                *c = T::madd::<FMA>(*x, da, *c);
             }
             gdphi[i] = gdphi[i] + dot::<T, FMA>(gr, wa);
             if cb != usize::MAX {
-                for o in 0..op {
-                    colb[o] = T::madd::<FMA>(gr[o], db, colb[o]);
+                for (c, x) in colb.iter_mut().zip(gr) {
+                    *c = T::madd::<FMA>(*x, db, *c);
                 }
                 gdphi[i + 1] = gdphi[i + 1] + dot::<T, FMA>(gr, &layer.wt[cb * op..(cb + 1) * op]);
             }
