@@ -1,8 +1,9 @@
 """Training throughput: loss samples per second of one optimiser step at the paper's batch (8192), for
 ExoLaN+LIM with w_fd and w_ms (H = 4, 256 starts) and for MLP-TCN+LIM (torque loss), at 1 and 2 torch threads;
-with `--against REV`, the same measurement of the tree at git revision REV in the same run, and the ratios.
+with `--against REV`, the same measurement of the tree at git revision REV in the same run, and the ratios;
+with `--torch-path`, this tree also with its native training kernels off (EXOLAN_NATIVE_TERMS=0).
 
-    python benches/bench_train.py [--against 66a29dd] [--data DIR] [--batches 6] [--repeats 3] [--threads 1,2]
+    python benches/bench_train.py [--against 66a29dd] [--torch-path] [--data DIR] [--batches 6] [--repeats 3] [--threads 1,2]
                                   [--device cpu|cuda]
 
 Each figure is measured in a fresh subprocess (one per tree, configuration and thread count), the trees
@@ -38,6 +39,11 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int, 
     import torch
 
     torch.set_num_threads(threads)
+    try:                                       # a run's threads as `exolan train` gives them (trees that have it)
+        from exolan.native import cpu_threads
+        cpu_threads(threads).__enter__()
+    except ImportError:
+        pass
     from exolan.config import TrainConfig
     from exolan.data import load, paper_split
     from exolan.models import build_model
@@ -131,6 +137,8 @@ def main() -> None:
     ap.add_argument("--configs", default=",".join(CONFIGS))
     ap.add_argument("--device", default="cpu", help="cpu or cuda (the GPU's figures: compare trees on one device)")
     ap.add_argument("--json", default=None, help="write the figures here")
+    ap.add_argument("--torch-path", action="store_true",
+                    help="also measure this tree with its native training kernels off (EXOLAN_NATIVE_TERMS=0)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
@@ -146,6 +154,9 @@ def main() -> None:
         print(f"simulating the training split into {data} (once) ...", flush=True)
         simulate(data, users=21, tasks="train", seconds=6.0, progress=True)
     trees = {"this tree": (ROOT, None)}
+    if args.torch_path:
+        # this tree without its native training kernels: their share of the gain
+        trees["this tree, torch path"] = (ROOT, {"EXOLAN_NATIVE_TERMS": "0"})
     if args.against:
         old = tree_of(args.against)
         trees[args.against] = (old, None)
@@ -179,6 +190,10 @@ def main() -> None:
                 olds = best[(config, th, args.against + "+settings")]
                 line += f"   (vs {args.against} with this tree's process settings {olds:9.0f}: {new / olds:5.2f}x)"
                 row.update(old_settings=olds, ratio_settings=new / olds)
+            if args.torch_path:
+                tp = best[(config, th, "this tree, torch path")]
+                line += f"   (this tree on torch's path {tp:9.0f}: native kernels {new / tp:5.2f}x)"
+                row.update(torch_path=tp, ratio_torch_path=new / tp)
             row["all"] = {name: v for (c, t, name), v in runs.items() if (c, t) == (config, th)}
             spread = ", ".join(f"{name} {min(v):.0f}-{max(v):.0f}" for name, v in row["all"].items())
             print(line + f"\n      all repeats: {spread}")

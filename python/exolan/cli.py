@@ -188,8 +188,8 @@ def _add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="TOML file; command-line flags override it")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda if available)")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads (default: torch's, one per core; one thread was the fastest on a 2-core "
-                        "machine: docs/TRAINING.md)")
+                   help="CPU threads of the run (default: one per core): the native training kernels take them all, "
+                        "torch's own ops one (docs/TRAINING.md)")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--out", required=True)
 

@@ -47,7 +47,7 @@ class TrainConfig:
     chunk_steps: int = 256         # loss steps per trial chunk (plus the encoder's warm-up before them)
     warmup: int = -1               # context steps before a chunk's loss steps; -1 = receptive field − 1 (62)
     device: str = "auto"           # auto | cpu | cuda
-    threads: int = 0               # torch CPU threads; 0 = torch's default
+    threads: int = 0               # CPU threads of the run (exolan.native.cpu_threads); 0 = torch's default
     val_every: int = 10            # epochs between held-out torque MSE figures (0 = only the last epoch)
     checkpoint_every: int = 1      # epochs between checkpoints (the last epoch always)
     physics_check: bool = True     # DeLaN-based: write physics.json (PD inertia, energy drift) after training

@@ -8,26 +8,17 @@ product per tile of samples, keeps the tile in cache through the elementwise cha
 gradient in a fixed order, so its results do not depend on the thread count.
 
 Used on the CPU for float32 (training and the diagnosis' fits) whenever the native module is built; float64
-stays on torch's path (the oracle the engine's parity tests compare against), as do CUDA tensors. The
-environment variable EXOLAN_NATIVE_TERMS=0 turns it off (for comparisons: benches/bench_train.py).
+stays on torch's path (the oracle the engine's parity tests compare against), as do CUDA tensors. The switch
+and the threads: `exolan.native`.
 """
 from __future__ import annotations
 
-import os
-
 import torch
 
-try:
-    from . import _native
-except ImportError:  # a source tree without the built extension: torch's path only
-    _native = None
+from .native import _native, enabled, threads
 
 DTYPES = (torch.float32,)
 MAX_JOINTS = 3
-
-
-def enabled() -> bool:
-    return _native is not None and hasattr(_native, "terms_forward") and os.environ.get("EXOLAN_NATIVE_TERMS", "1") != "0"
 
 
 def usable(lag, q: torch.Tensor) -> bool:
@@ -55,7 +46,7 @@ class _Terms(torch.autograd.Function):
         keep = any(ctx.needs_input_grad)
         ctx.call = _native.terms_forward(
             list(lag.features.joint_types), lag.z_dim, lag.softplus_offset, lag.v_scale, arrays[:n_l], arrays[n_l:],
-            _np(q), _np(qd), _np(z), L.numpy(), H.numpy(), c.numpy(), g.numpy(), keep, torch.get_num_threads())
+            _np(q), _np(qd), _np(z), L.numpy(), H.numpy(), c.numpy(), g.numpy(), keep, threads())
         ctx.shapes = (q.shape, z.shape)
         return L, H, c, g
 
@@ -64,7 +55,7 @@ class _Terms(torch.autograd.Function):
         (qs, zs) = ctx.shapes
         dq, dqd, dz = torch.empty(qs, dtype=dL.dtype), torch.empty(qs, dtype=dL.dtype), torch.empty(zs, dtype=dL.dtype)
         gl, gv = ctx.call.backward(_np(dL), _np(dH), _np(dc), _np(dg), dq.numpy(), dqd.numpy(), dz.numpy(),
-                                   torch.get_num_threads())
+                                   threads())
         grads = [torch.from_numpy(a) for pair in list(gl) + list(gv) for a in pair]
         # V's output bias shifts V, not g = ∂V/∂q: no gradient, as in torch's graph (Adam then leaves it alone)
         grads[-1] = None

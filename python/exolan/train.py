@@ -33,6 +33,7 @@ from typing import Any
 
 import torch
 
+from . import native
 from .config import TrainConfig, load_config, merge
 from .models import ExoModel, build_model
 from .batches import (_describe, batch_losses, compute_stats, data_scales, grad_norms, make_chunks, ms_weights,
@@ -84,6 +85,12 @@ def train(data_or_split, method: str | None = None, lim: bool | None = None, epo
 def _run(cfg: TrainConfig, train_trials, val_trials, data_path, out: Path, resume: bool, progress: bool) -> Path:
     old_threads = torch.get_num_threads()
     try:
+        if _device(cfg.device).type == "cpu":
+            # the run's threads go to the native kernels, torch's own ops keep one (exolan.native)
+            with native.cpu_threads(cfg.threads or old_threads):
+                return _run_inner(cfg, train_trials, val_trials, data_path, out, resume, progress)
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
         return _run_inner(cfg, train_trials, val_trials, data_path, out, resume, progress)
     finally:
         torch.set_num_threads(old_threads)        # `threads` applies to this run, not to the caller
@@ -141,8 +148,6 @@ def _run_inner(cfg: TrainConfig, train_trials, test_trials, data_path, out: Path
     ck_path = out / CHECKPOINT
     if ck_path.exists() and not resume:
         raise FileExistsError(f"{out} already holds a run; pass resume=True (--resume) to continue it")
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
     device = _device(cfg.device)
     train_trials, val_trials = split_validation(train_trials, cfg.val_users)
     desc = _describe(train_trials)
@@ -175,7 +180,8 @@ def _run_inner(cfg: TrainConfig, train_trials, test_trials, data_path, out: Path
     run_info = dict(status="running", data=data_path, n_train_trials=len(train_trials),
                     n_val_trials=len(val_trials), n_test_trials=len(test_trials),
                     val_users=sorted({t.subject for t in val_trials}), n_train_samples=stats["n_samples"],
-                    device=str(device), torch_threads=torch.get_num_threads())
+                    device=str(device), torch_threads=torch.get_num_threads(), native_threads=native.threads()
+                    if device.type == "cpu" and native.enabled() else 0)
     write_json(out / "run.json", run_info)
 
     warmup = _warmup(cfg, model)
