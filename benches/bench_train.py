@@ -60,7 +60,11 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int, 
     model.norm.set_stats(stats["ctx_mean"], stats["ctx_std"])
     dev = torch.device(device)
     model.to(dev)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3, weight_decay=1e-3)
+    try:                                       # the optimiser as the tree's exolan train makes it
+        from exolan.train import make_optimizer
+    except ImportError:
+        make_optimizer = lambda params, lr, wd: torch.optim.Adam(params, lr=lr, weight_decay=wd)  # noqa: E731
+    opt = make_optimizer(model.parameters(), 1e-3, 1e-3)
     cfg = TrainConfig(method=c["method"], batch_size=batch_size, w_fd=c["w_fd"], w_ms=c["w_ms"])
     ch = make_chunks(trials, model.receptive_field - 1, cfg.chunk_steps, cfg.horizon).to(dev)
     per = max(1, cfg.batch_size // cfg.chunk_steps)

@@ -267,7 +267,7 @@ def _classify(Z, Y, itr, ite, k, seed, scale: Scale) -> dict:
     torch.manual_seed(seed)
     net = nn.Sequential(nn.Linear(Z.shape[1], 64), nn.ReLU(), nn.Linear(64, 64), nn.ReLU(),
                         nn.Linear(64, 64), nn.ReLU(), nn.Linear(64, k))
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=1e-4)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=1e-4, fused=True)
     lossf = nn.CrossEntropyLoss(weight=torch.as_tensor(w, dtype=torch.float32))
     bs = 4096
     for _ in range(scale.taskid_epochs):

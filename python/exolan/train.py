@@ -113,6 +113,12 @@ def _build(cfg: TrainConfig, desc: dict, stats: dict):
     return model
 
 
+def make_optimizer(params, lr: float, weight_decay: float) -> torch.optim.Adam:
+    """The training optimiser. Fused: one kernel over every parameter instead of a dozen ops per tensor (3.7 ->
+    0.6 ms a step for ExoLaN+LIM on one core here, docs/TRAINING.md)."""
+    return torch.optim.Adam(params, lr=lr, weight_decay=weight_decay, fused=True)
+
+
 def _warmup(cfg: TrainConfig, model: ExoModel) -> int:
     if cfg.warmup >= 0:
         return cfg.warmup
@@ -156,7 +162,7 @@ def _run_inner(cfg: TrainConfig, train_trials, test_trials, data_path, out: Path
     model = _build(cfg, desc, stats)
     spec = model.spec()
     model.to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    opt = make_optimizer(model.parameters(), cfg.lr, cfg.weight_decay)
 
     start_epoch, metrics, stopper = 0, [], EarlyStop(cfg.patience)
     if ck_path.exists():

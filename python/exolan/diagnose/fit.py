@@ -102,7 +102,7 @@ def train(model: nn.Module, flat: Flat, steps: int, lr: float = 3e-3, lr_ext: fl
                   {"params": model.ext_parameters(), "lr": lr_ext, "weight_decay": 0.0}]
     else:
         groups = [{"params": list(model.parameters()), "lr": lr, "weight_decay": weight_decay}]
-    opt = torch.optim.Adam(groups)
+    opt = torch.optim.Adam(groups, fused=True)      # one kernel per step, as in training
     # cosine decay: the last steps settle the physical parameters instead of jittering around them
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps, 1), eta_min=0.05 * lr)
     hist = []
