@@ -13,6 +13,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from . import native_tcn
+
 
 class Normalizer(nn.Module):
     def __init__(self, channels: int):
@@ -71,6 +73,8 @@ class TCNEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
         """x (B, T, C) normalised -> z (B, T, hidden). keep (B, T) bool/float: 0 before the trial start."""
+        if native_tcn.usable(self, x):
+            return native_tcn.encode(self, x, keep)
         h = x.transpose(1, 2)
         k = None
         if keep is not None:
