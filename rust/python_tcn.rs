@@ -30,7 +30,7 @@ fn slice_mut<'a, T: Element>(name: &str, a: &'a mut PyReadwriteArrayDyn<'_, T>) 
 
 /// [W₀, b₀, W₁, b₁, …] (W out × in × taps, b out) as slices.
 fn convs<'a, T: Element>(arrays: &'a [PyReadonlyArrayDyn<'_, T>]) -> PyResult<Vec<ConvRef<'a, T>>> {
-    if arrays.len() % 2 != 0 {
+    if !arrays.len().is_multiple_of(2) {
         return Err(bad("tcn: the convs' arrays must come as weight, bias pairs".into()));
     }
     arrays.chunks(2).enumerate().map(|(i, p)| {

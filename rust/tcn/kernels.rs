@@ -72,40 +72,47 @@ fn conv_backward<T: Real, const FMA: bool, const WIDE: bool>(
     }
 }
 
-/// One block over one sequence: h₁, h₂, y (t × hp each) from x (t × cin, row stride sx). The elementwise
+/// One block over one sequence: h₁, y (t × hp each) and h₂'s ReLU mask `m` from x (t × cin, row stride sx);
+/// a₂ (t × hp) is scratch. The elementwise
 /// passes go in register-wide pieces (`T::LANES` ≤ 16, a constant: each inner loop one vector operation),
 /// computed into a local array and then stored, as a store into the row could otherwise alias the next loads.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn block_forward<T: Real, const FMA: bool, const WIDE: bool>(
-    b: &Block<T>, t: usize, x: &[T], sx: usize, keep: &[T], h1: &mut [T], h2: &mut [T], y: &mut [T],
+    b: &Block<T>, t: usize, x: &[T], sx: usize, keep: &[T], h1: &mut [T], a2: &mut [T], y: &mut [T], m: &mut [u8],
 ) {
     let (hp, nl, z) = (b.conv2.op, T::LANES, T::default());
-    let mut v = [z; 16];
+    let (mut v, mut w, mut mb) = ([z; 16], [z; 16], [0u8; 16]);
+    // columns outside, rows inside: a row is one vector for hidden ≤ LANES, and the loop over rows stays tight
     conv_forward::<T, FMA, WIDE>(&b.conv1, t, x, sx, h1);
-    for (row, &kr) in h1.chunks_exact_mut(hp).zip(keep) {
-        for (a, bb) in row.chunks_exact_mut(nl).zip(b.conv1.b.chunks_exact(nl)) {
+    for c in (0..hp).step_by(nl) {
+        let b1 = &b.conv1.b[c..c + nl];
+        for r in 0..t {
+            let (a, kr) = (&h1[r * hp + c..r * hp + c + nl], keep[r]);
             for l in 0..nl {
-                v[l] = relu(a[l] + bb[l]) * kr;
+                v[l] = relu(a[l] + b1[l]) * kr;
             }
-            a.copy_from_slice(&v[..nl]);
+            h1[r * hp + c..r * hp + c + nl].copy_from_slice(&v[..nl]);
         }
     }
-    conv_forward::<T, FMA, WIDE>(&b.conv2, t, h1, hp, h2);
-    // h₂ = relu(a₂ + b₂) and y = relu(h₂ + res(x))·keep in one pass: res(x) = (r + b_r), r in y, or x
+    conv_forward::<T, FMA, WIDE>(&b.conv2, t, h1, hp, a2);
+    // h₂ = relu(a₂ + b₂), its mask, and y = relu(h₂ + res(x))·keep in one pass: res(x) = (r + b_r), r in y, or x
     if let Some(c) = &b.res {
         conv_forward::<T, FMA, WIDE>(c, t, x, sx, y);
     }
-    let mut w = [z; 16];
-    for (r, ((yr, hr), &kr)) in y.chunks_exact_mut(hp).zip(h2.chunks_exact_mut(hp)).zip(keep).enumerate() {
-        for c in (0..hp).step_by(nl) {
-            let (a, b2) = (&hr[c..c + nl], &b.conv2.b[c..c + nl]);
+    for c in (0..hp).step_by(nl) {
+        let b2 = &b.conv2.b[c..c + nl];
+        let br = b.res.as_ref().map(|res| &res.b[c..c + nl]);
+        for r in 0..t {
+            let (i, kr) = (r * hp + c, keep[r]);
+            let a = &a2[i..i + nl];
             for l in 0..nl {
                 v[l] = relu(a[l] + b2[l]);
+                mb[l] = u8::from(v[l] > z);
             }
-            match &b.res {
-                Some(res) => {
-                    let (rv, br) = (&yr[c..c + nl], &res.b[c..c + nl]);
+            match br {
+                Some(br) => {
+                    let rv = &y[i..i + nl];
                     for l in 0..nl {
                         w[l] = relu(v[l] + (rv[l] + br[l])) * kr;
                     }
@@ -117,19 +124,19 @@ fn block_forward<T: Real, const FMA: bool, const WIDE: bool>(
                     }
                 }
             }
-            hr[c..c + nl].copy_from_slice(&v[..nl]);
-            yr[c..c + nl].copy_from_slice(&w[..nl]);
+            m[i..i + nl].copy_from_slice(&mb[..nl]);
+            y[i..i + nl].copy_from_slice(&w[..nl]);
         }
     }
 }
 
 /// ReLU's reverse from its saved output `o` (torch's rule: the gradient passes where o > 0): g = g there and 0
-/// elsewhere, in place, Σ_t g added to `db` where given; with `then` = (h, ga, db_a), also ga = g where h > 0
-/// and Σ_t ga added to db_a. Columns go in register-wide pieces outside and rows inside, so that the sums stay
+/// elsewhere, in place, Σ_t g added to `db` where given; with `then` = (m, ga, db_a), also ga = g where the
+/// mask m is set and Σ_t ga added to db_a. Columns go in register-wide pieces outside and rows inside, so that the sums stay
 /// in registers; values are computed into local arrays, then stored (see `block_forward`), and loaded ahead of
 /// each comparison, as a conditional load compiles to a branch per value.
 #[inline(always)]
-fn relu_back<T: Real>(t: usize, op: usize, o: &[T], g: &mut [T], db: Option<&mut [T]>, then: Option<(&[T], &mut [T], &mut [T])>) {
+fn relu_back<T: Real>(t: usize, op: usize, o: &[T], g: &mut [T], db: Option<&mut [T]>, then: Option<(&[u8], &mut [T], &mut [T])>) {
     let (nl, z) = (T::LANES, T::default());
     let (mut db, mut then) = (db, then);
     for c in (0..op).step_by(nl) {
@@ -143,10 +150,10 @@ fn relu_back<T: Real>(t: usize, op: usize, o: &[T], g: &mut [T], db: Option<&mut
                 sum[l] = sum[l] + v[l];
             }
             g[i..i + nl].copy_from_slice(&v[..nl]);
-            if let Some((h, ga, _)) = then.as_mut() {
-                let hr = &h[i..i + nl];
+            if let Some((m, ga, _)) = then.as_mut() {
+                let mr = &m[i..i + nl];
                 for l in 0..nl {
-                    a[l] = if hr[l] > z { v[l] } else { z };
+                    a[l] = if mr[l] != 0 { v[l] } else { z };
                     sum_a[l] = sum_a[l] + a[l];
                 }
                 ga[i..i + nl].copy_from_slice(&a[..nl]);
@@ -171,10 +178,10 @@ fn relu_back<T: Real>(t: usize, op: usize, o: &[T], g: &mut [T], db: Option<&mut
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn block_backward<T: Real, const FMA: bool, const WIDE: bool>(
-    b: &Block<T>, t: usize, x: &[T], sx: usize, tape: [&[T]; 3], gy: &mut [T], ga2: &mut [T], ga1: &mut [T],
+    b: &Block<T>, t: usize, x: &[T], sx: usize, tape: (&[T], &[T], &[u8]), gy: &mut [T], ga2: &mut [T], ga1: &mut [T],
     want_gx: bool, grad: &mut [T], tmp: &mut [T],
 ) {
-    let [h1, h2, y] = tape;
+    let (h1, y, m2) = tape;
     let hp = b.conv2.op;
     let (c1, c2) = (&b.conv1, &b.conv2);
     let (dw1, rest) = grad.split_at_mut(c1.taps * c1.cout * c1.cip);
@@ -184,7 +191,7 @@ fn block_backward<T: Real, const FMA: bool, const WIDE: bool>(
     let (dwr, dbr) = rest.split_at_mut(rest.len().saturating_sub(hp));
     let (gy, ga1) = (&mut gy[..t * hp], &mut ga1[..t * hp]);
     // y = relu(h₂ + res(x))·keep, then h₂ = relu(a₂): gy becomes the gradient of res(x), ga₂ that of a₂
-    relu_back(t, hp, y, gy, b.res.is_some().then_some(dbr), Some((h2, &mut ga2[..t * hp], db2)));
+    relu_back(t, hp, y, gy, b.res.is_some().then_some(dbr), Some((m2, &mut ga2[..t * hp], db2)));
     conv_backward::<T, FMA, WIDE>(c2, t, &ga2[..t * hp], h1, hp, dw2, tmp, Some(&mut *ga1), false);
     // h₁ = relu(a₁)·keep
     relu_back(t, hp, h1, ga1, Some(db1), None);
@@ -219,9 +226,10 @@ fn unpad<T: Real>(src: &[T], sw: usize, dst: &mut [T], w: usize) {
     }
 }
 
-/// A sequence's forward pass into its tape `st` (layout: `Tcn::seq_len`).
+/// A sequence's forward pass into its tape `st` and masks `sm` (layout: `Tcn::seq_len`, `Tcn::mask_len`); a₂:
+/// t × hp of scratch.
 #[inline(always)]
-fn seq_forward<T: Real, const FMA: bool, const WIDE: bool>(k: &Tcn<T>, t: usize, x: &[T], keep: &[T], st: &mut [T]) {
+fn seq_forward<T: Real, const FMA: bool, const WIDE: bool>(k: &Tcn<T>, t: usize, x: &[T], keep: &[T], st: &mut [T], sm: &mut [u8], a2: &mut [T]) {
     let (c_in, cip, hp) = (k.c_in, k.cip, k.hp);
     let (x0, mut rest) = st.split_at_mut(t * cip);
     x0.fill(T::default());
@@ -231,37 +239,42 @@ fn seq_forward<T: Real, const FMA: bool, const WIDE: bool>(k: &Tcn<T>, t: usize,
         }
     }
     let (mut input, mut sx): (&[T], usize) = (x0, cip);
-    for b in &k.blocks {
+    for (b, m) in k.blocks.iter().zip(sm.chunks_exact_mut(t * hp)) {
         let (h1, r) = std::mem::take(&mut rest).split_at_mut(t * hp);
-        let (h2, r) = r.split_at_mut(t * hp);
         let (y, r) = r.split_at_mut(t * hp);
-        block_forward::<T, FMA, WIDE>(b, t, input, sx, keep, h1, h2, y);
+        block_forward::<T, FMA, WIDE>(b, t, input, sx, keep, h1, a2, y, m);
         (input, sx, rest) = (y, hp, r);
     }
 }
 
 #[inline(always)]
-pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &FwdJob<T>, ci: usize, tape: &mut [T], z: &mut [T]) {
+pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &FwdJob<T>, ci: usize, tape: &mut [T], masks: &mut [u8], z: &mut [T]) {
     let (k, t) = (job.k, job.t_len);
-    let (sl, h, hp, c_in) = (k.seq_len(t), k.hidden, k.hp, k.c_in);
+    let (sl, ml, h, hp, c_in) = (k.seq_len(t), k.mask_len(t), k.hidden, k.hp, k.c_in);
     let first = ci * job.spc;
     let count = (job.batch - first).min(job.spc);
+    let mut a2 = vec![T::default(); t * hp];
     // without a tape, one sequence's worth of it is reused sequence after sequence
-    let mut own = if job.tape { Vec::new() } else { vec![T::default(); sl] };
+    let (mut own, mut own_masks) = if job.tape { (Vec::new(), Vec::new()) } else { (vec![T::default(); sl], vec![0; ml]) };
     for j in 0..count {
         let s = first + j;
-        let st = if job.tape { &mut tape[j * sl..(j + 1) * sl] } else { &mut own[..] };
-        seq_forward::<T, FMA, WIDE>(k, t, &job.x[s * t * c_in..(s + 1) * t * c_in], &job.keep[s * t..(s + 1) * t], st);
+        let (st, sm) = if job.tape {
+            (&mut tape[j * sl..(j + 1) * sl], &mut masks[j * ml..(j + 1) * ml])
+        } else {
+            (&mut own[..], &mut own_masks[..])
+        };
+        seq_forward::<T, FMA, WIDE>(k, t, &job.x[s * t * c_in..(s + 1) * t * c_in], &job.keep[s * t..(s + 1) * t], st, sm, &mut a2);
         unpad(&st[sl - t * hp..], hp, &mut z[j * t * h..(j + 1) * t * h], h);
     }
 }
 
-/// A sequence's reverse pass from its tape `st` and the gradient of its z; `bufs`: 3 · t · max(hp, cip) values
+/// A sequence's reverse pass from its tape `st`, masks `sm` and the gradient of its z; `bufs`: 3 · t · max(hp, cip) values
 /// of scratch, `tmp`: MR · max(hp, cip).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn seq_backward<T: Real, const FMA: bool, const WIDE: bool>(
-    k: &Tcn<T>, t: usize, st: &[T], gz: &[T], keep: &[T], grad: &mut [T], dx: Option<&mut [T]>, bufs: &mut [T], tmp: &mut [T],
+    k: &Tcn<T>, t: usize, st: &[T], sm: &[u8], gz: &[T], keep: &[T], grad: &mut [T], dx: Option<&mut [T]>, bufs: &mut [T],
+    tmp: &mut [T],
 ) {
     let (h, hp, cip) = (k.hidden, k.hp, k.cip);
     let w = hp.max(cip);
@@ -278,8 +291,8 @@ fn seq_backward<T: Real, const FMA: bool, const WIDE: bool>(
     let mut goff = grad.len();
     for (i, b) in k.blocks.iter().enumerate().rev() {
         goff -= b.grad_len();
-        let base = t * cip + 3 * i * t * hp;
-        let tape = [&st[base..][..t * hp], &st[base + t * hp..][..t * hp], &st[base + 2 * t * hp..][..t * hp]];
+        let base = t * cip + 2 * i * t * hp;
+        let tape = (&st[base..][..t * hp], &st[base + t * hp..][..t * hp], &sm[i * t * hp..(i + 1) * t * hp]);
         let (x, sx) = if i == 0 { (&st[..t * cip], cip) } else { (&st[base - t * hp..base], hp) };
         block_backward::<T, FMA, WIDE>(b, t, x, sx, tape, gy, ga2, ga1, i > 0 || dx.is_some(), &mut grad[goff..goff + b.grad_len()], tmp);
         // x's gradient, in ga₂'s buffer, is the next block's gy
@@ -299,7 +312,7 @@ fn seq_backward<T: Real, const FMA: bool, const WIDE: bool>(
 pub(super) fn backward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &BwdJob<T>, ci: usize, grad: &mut [T], dx: &mut [T]) {
     let (k, tape) = (job.k, job.tape);
     let t = tape.t_len;
-    let (sl, w, h, c_in) = (k.seq_len(t), k.hp.max(k.cip), k.hidden, k.c_in);
+    let (sl, ml, w, h, c_in) = (k.seq_len(t), k.mask_len(t), k.hp.max(k.cip), k.hidden, k.c_in);
     let mut bufs = vec![T::default(); 3 * t * w];
     let mut tmp = vec![T::default(); MR * w];
     let first = ci * job.spc;
@@ -307,7 +320,7 @@ pub(super) fn backward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &B
     for j in 0..count {
         let s = first + j;
         let dxs = if job.dx { Some(&mut dx[j * t * c_in..(j + 1) * t * c_in]) } else { None };
-        seq_backward::<T, FMA, WIDE>(k, t, &tape.data[s * sl..(s + 1) * sl], &job.gz[s * t * h..(s + 1) * t * h],
-                                     &tape.keep[s * t..(s + 1) * t], grad, dxs, &mut bufs, &mut tmp);
+        seq_backward::<T, FMA, WIDE>(k, t, &tape.data[s * sl..(s + 1) * sl], &tape.masks[s * ml..(s + 1) * ml],
+                                     &job.gz[s * t * h..(s + 1) * t * h], &tape.keep[s * t..(s + 1) * t], grad, dxs, &mut bufs, &mut tmp);
     }
 }
