@@ -113,7 +113,9 @@ impl TcnCall {
     /// The gradient of x written into `dx` where given, from that of z (`dz`); returns the convs' weight
     /// gradients [(dW, db), …] in the order the forward pass took them.
     #[pyo3(signature = (dz, dx, threads))]
-    fn backward<'py>(&self, py: Python<'py>, dz: &Bound<'py, PyAny>, dx: Option<&Bound<'py, PyAny>>, threads: usize) -> PyResult<PyGrads<'py>> {
+    fn backward<'py>(
+        &self, py: Python<'py>, dz: &Bound<'py, PyAny>, dx: Option<&Bound<'py, PyAny>>, threads: usize,
+    ) -> PyResult<PyGrads<'py>> {
         match &self.call {
             Call::F32(k, t) => backward(py, k, t, dz, dx, threads),
             Call::F64(k, t) => backward(py, k, t, dz, dx, threads),

@@ -9,6 +9,9 @@
 //! one product for the weight gradient and one for the input gradient. ReLU's derivative is read from the
 //! saved outputs (torch's rule: 1 where the output is > 0), which also holds keep's zeros.
 //!
+//! The forward pass keeps a tape (`TcnTape`) rather than the reverse pass recomputing each sequence's blocks:
+//! at a training batch (32 × 318, float32, one thread) recomputing cost 1.1 ms more than writing and reading it.
+//!
 //! Sequences go in chunks of whole sequences (about `CHUNK_POSITIONS` positions); chunks run on the pool's
 //! threads, each sums its weight gradients apart and the chunks' sums are added in chunk order, so the result
 //! is the same bit for bit at any thread count.
@@ -279,7 +282,7 @@ impl<T: TcnReal> Default for TcnTape<T> {
     }
 }
 
-/// A tape's buffer (10 MB at a training batch) goes back to a small free list when the tape is dropped, so the
+/// A tape's buffers (7.5 MB at a training batch) goes back to a small free list when the tape is dropped, so the
 /// next step's forward pass neither clears it nor faults its pages in again. Apart from `grad`'s list, whose
 /// first-fit pick would hand this small buffer the terms' large one.
 impl<T: Send + 'static> Drop for TcnTape<T> {

@@ -100,6 +100,7 @@ def test_no_tape_without_gradients_and_same_bits_at_any_thread_count():
     z = torch.empty(9, 300, 16)
     k = keep.to(torch.float32)
     assert native_tcn._native.tcn_forward(7, 16, 5, 2, arrays, x.numpy(), k.numpy(), z.numpy(), False, 1) is None
+    assert native_tcn._native.tcn_forward(7, 16, 5, 2, arrays, x.numpy(), k.numpy(), z.numpy(), True, 1).batch == 9
     with torch.no_grad():
         assert torch.equal(enc(x, keep), z)
     threads = torch.get_num_threads()

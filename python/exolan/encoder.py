@@ -4,6 +4,9 @@ Both encoders run over a whole sequence at once (one causal pass gives z at ever
 training and evaluation use them; `tcn_window_z` re-runs the TCN on a 63-step window per sample and exists
 only to prove that both give the same z.
 
+On the CPU in float32 `TCNEncoder.forward` runs on the native training kernel (native_tcn.py, rust/tcn.rs),
+which computes what the torch code below computes.
+
 Input normalisation (`Normalizer`, state_dict `norm.ctx_mean`, `norm.ctx_std`): (x − mean)/std, then
 non-finite → 0 (the training mean), as in DESIGN.md section 2.
 """

@@ -66,16 +66,17 @@ fn conv_backward<T: Real, const FMA: bool, const WIDE: bool>(
         for k in (0..c.taps).rev() {
             let s = c.shift(k);
             if s < t {
-                gemm::<T, FMA, WIDE>(t - s, cout, cip, &ga[s * op..], op, 1, &c.w[k * cout * cip..], cip, gx, cip, acc || k + 1 < c.taps);
+                let acc = acc || k + 1 < c.taps;
+                gemm::<T, FMA, WIDE>(t - s, cout, cip, &ga[s * op..], op, 1, &c.w[k * cout * cip..], cip, gx, cip, acc);
             }
         }
     }
 }
 
 /// One block over one sequence: h₁, y (t × hp each) and h₂'s ReLU mask `m` from x (t × cin, row stride sx);
-/// a₂ (t × hp) is scratch. The elementwise
-/// passes go in register-wide pieces (`T::LANES` ≤ 16, a constant: each inner loop one vector operation),
-/// computed into a local array and then stored, as a store into the row could otherwise alias the next loads.
+/// a₂ (t × hp) is scratch. The elementwise passes go in register-wide pieces (`T::LANES` ≤ 16, a constant: each
+/// inner loop one vector operation), computed into a local array and then stored, as a store into the row could
+/// otherwise alias the next loads (the loop would stay scalar).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn block_forward<T: Real, const FMA: bool, const WIDE: bool>(
@@ -131,10 +132,10 @@ fn block_forward<T: Real, const FMA: bool, const WIDE: bool>(
 }
 
 /// ReLU's reverse from its saved output `o` (torch's rule: the gradient passes where o > 0): g = g there and 0
-/// elsewhere, in place, Σ_t g added to `db` where given; with `then` = (m, ga, db_a), also ga = g where the
-/// mask m is set and Σ_t ga added to db_a. Columns go in register-wide pieces outside and rows inside, so that the sums stay
-/// in registers; values are computed into local arrays, then stored (see `block_forward`), and loaded ahead of
-/// each comparison, as a conditional load compiles to a branch per value.
+/// elsewhere, in place, Σ_t g added to `db` where given; with `then` = (m, ga, db_a), also ga = g where the mask
+/// m is set and Σ_t ga added to db_a. Columns go in register-wide pieces outside and rows inside, so that the
+/// sums stay in registers; values are computed into local arrays, then stored (see `block_forward`), and loaded
+/// ahead of each comparison, as a conditional load compiles to a branch per value.
 #[inline(always)]
 fn relu_back<T: Real>(t: usize, op: usize, o: &[T], g: &mut [T], db: Option<&mut [T]>, then: Option<(&[u8], &mut [T], &mut [T])>) {
     let (nl, z) = (T::LANES, T::default());
@@ -216,7 +217,7 @@ fn block_backward<T: Real, const FMA: bool, const WIDE: bool>(
 /// The first `w` of every `sw` values of `src` into `dst`: one copy when there is no padding (a copy per row
 /// is a library call per row).
 #[inline(always)]
-fn unpad<T: Real>(src: &[T], sw: usize, dst: &mut [T], w: usize) {
+fn first_cols<T: Real>(src: &[T], sw: usize, dst: &mut [T], w: usize) {
     if w == sw {
         dst.copy_from_slice(&src[..dst.len()]);
     } else {
@@ -229,7 +230,9 @@ fn unpad<T: Real>(src: &[T], sw: usize, dst: &mut [T], w: usize) {
 /// A sequence's forward pass into its tape `st` and masks `sm` (layout: `Tcn::seq_len`, `Tcn::mask_len`); a₂:
 /// t × hp of scratch.
 #[inline(always)]
-fn seq_forward<T: Real, const FMA: bool, const WIDE: bool>(k: &Tcn<T>, t: usize, x: &[T], keep: &[T], st: &mut [T], sm: &mut [u8], a2: &mut [T]) {
+fn seq_forward<T: Real, const FMA: bool, const WIDE: bool>(
+    k: &Tcn<T>, t: usize, x: &[T], keep: &[T], st: &mut [T], sm: &mut [u8], a2: &mut [T],
+) {
     let (c_in, cip, hp) = (k.c_in, k.cip, k.hp);
     let (x0, mut rest) = st.split_at_mut(t * cip);
     x0.fill(T::default());
@@ -248,7 +251,9 @@ fn seq_forward<T: Real, const FMA: bool, const WIDE: bool>(k: &Tcn<T>, t: usize,
 }
 
 #[inline(always)]
-pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &FwdJob<T>, ci: usize, tape: &mut [T], masks: &mut [u8], z: &mut [T]) {
+pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(
+    job: &FwdJob<T>, ci: usize, tape: &mut [T], masks: &mut [u8], z: &mut [T],
+) {
     let (k, t) = (job.k, job.t_len);
     let (sl, ml, h, hp, c_in) = (k.seq_len(t), k.mask_len(t), k.hidden, k.hp, k.c_in);
     let first = ci * job.spc;
@@ -264,12 +269,12 @@ pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &Fw
             (&mut own[..], &mut own_masks[..])
         };
         seq_forward::<T, FMA, WIDE>(k, t, &job.x[s * t * c_in..(s + 1) * t * c_in], &job.keep[s * t..(s + 1) * t], st, sm, &mut a2);
-        unpad(&st[sl - t * hp..], hp, &mut z[j * t * h..(j + 1) * t * h], h);
+        first_cols(&st[sl - t * hp..], hp, &mut z[j * t * h..(j + 1) * t * h], h);
     }
 }
 
-/// A sequence's reverse pass from its tape `st`, masks `sm` and the gradient of its z; `bufs`: 3 · t · max(hp, cip) values
-/// of scratch, `tmp`: MR · max(hp, cip).
+/// A sequence's reverse pass from its tape `st`, masks `sm` and the gradient of its z; `bufs`: 3 · t · max(hp, cip)
+/// values of scratch, `tmp`: MR · max(hp, cip).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn seq_backward<T: Real, const FMA: bool, const WIDE: bool>(
@@ -294,7 +299,8 @@ fn seq_backward<T: Real, const FMA: bool, const WIDE: bool>(
         let base = t * cip + 2 * i * t * hp;
         let tape = (&st[base..][..t * hp], &st[base + t * hp..][..t * hp], &sm[i * t * hp..(i + 1) * t * hp]);
         let (x, sx) = if i == 0 { (&st[..t * cip], cip) } else { (&st[base - t * hp..base], hp) };
-        block_backward::<T, FMA, WIDE>(b, t, x, sx, tape, gy, ga2, ga1, i > 0 || dx.is_some(), &mut grad[goff..goff + b.grad_len()], tmp);
+        let g = &mut grad[goff..goff + b.grad_len()];
+        block_backward::<T, FMA, WIDE>(b, t, x, sx, tape, gy, ga2, ga1, i > 0 || dx.is_some(), g, tmp);
         // x's gradient, in ga₂'s buffer, is the next block's gy
         std::mem::swap(&mut gy, &mut ga2);
     }
@@ -320,7 +326,8 @@ pub(super) fn backward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &B
     for j in 0..count {
         let s = first + j;
         let dxs = if job.dx { Some(&mut dx[j * t * c_in..(j + 1) * t * c_in]) } else { None };
-        seq_backward::<T, FMA, WIDE>(k, t, &tape.data[s * sl..(s + 1) * sl], &tape.masks[s * ml..(s + 1) * ml],
-                                     &job.gz[s * t * h..(s + 1) * t * h], &tape.keep[s * t..(s + 1) * t], grad, dxs, &mut bufs, &mut tmp);
+        let (st, sm) = (&tape.data[s * sl..(s + 1) * sl], &tape.masks[s * ml..(s + 1) * ml]);
+        let (gz, keep) = (&job.gz[s * t * h..(s + 1) * t * h], &tape.keep[s * t..(s + 1) * t]);
+        seq_backward::<T, FMA, WIDE>(k, t, st, sm, gz, keep, grad, dxs, &mut bufs, &mut tmp);
     }
 }
