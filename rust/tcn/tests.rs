@@ -141,6 +141,8 @@ fn shapes_are_checked() {
     assert!(k.backward(&tape, &[0.0; 39], None, &pool).is_err());
 }
 
+/// The training shape in float32: `cargo test --release --lib tcn::tests::speed -- --ignored --nocapture`
+/// (THREADS=n for a pool of n threads).
 #[test]
 #[ignore]
 fn speed_f32() {
@@ -154,7 +156,8 @@ fn speed_f32() {
     let x: Vec<f32> = rng.vec(batch * t * 7, 1.0).iter().map(|v| *v as f32).collect();
     let kp: Vec<f32> = keep(batch, t).iter().map(|v| *v as f32).collect();
     let gz: Vec<f32> = rng.vec(batch * t * 16, 1.0).iter().map(|v| *v as f32).collect();
-    let pool = Pool::new(1).unwrap();
+    let threads = std::env::var("THREADS").map_or(1, |v| v.parse().unwrap());
+    let pool = Pool::new(threads).unwrap();
     let mut z = vec![0f32; gz.len()];
     let (mut best_f, mut best_b, mut best_n) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);
     for _ in 0..40 {
@@ -169,6 +172,6 @@ fn speed_f32() {
         k.forward(&x, &kp, batch, t, &mut z, None, &pool).unwrap();
         best_n = best_n.min(t0.elapsed().as_secs_f64());
     }
-    println!("forward without tape {:.3} ms", best_n * 1e3);
-    println!("best of 40: forward {:.3} ms, backward {:.3} ms, simd {:?}", best_f * 1e3, best_b * 1e3, k.simd);
+    println!("best of 40: forward {:.3} ms, backward {:.3} ms, forward without a tape {:.3} ms, simd {:?}, {threads} thread(s)",
+             best_f * 1e3, best_b * 1e3, best_n * 1e3, k.simd);
 }
