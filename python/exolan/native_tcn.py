@@ -28,13 +28,14 @@ def enabled() -> bool:
 
 def usable(enc, x: torch.Tensor) -> bool:
     """Whether `enc` at x (B, T, C) runs on the kernel: CPU, a dtype in `DTYPES`, enabled. The weights are taken
-    to be alike (as `.to()` leaves them): the first conv's stand for all, as checking 22 costs 40 µs a call."""
+    to be alike (as `.to()` leaves them): the first conv's weight stands for all (checking 22 costs 40 µs a call)."""
     w = enc.tcn[0].conv1.weight
     return (x.device.type == "cpu" and x.dtype in DTYPES and x.dim() == 3 and enabled()
             and w.dtype == x.dtype and w.device.type == "cpu")
 
 
 def _params(enc) -> list[torch.Tensor]:
+    """[W, b, …] of every conv in the order the kernel takes them: per block conv1, conv2, res (where there is one)."""
     convs = (c for block in enc.tcn for c in (block.conv1, block.conv2, block.res) if c is not None)
     return [t for c in convs for t in (c.weight, c.bias)]
 
