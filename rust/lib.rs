@@ -32,6 +32,7 @@ pub mod rollout;
 pub mod simd;
 mod single_f32;
 pub mod synth;
+pub mod tcn;
 pub mod timing;
 
 pub use delan::{ExoTorque, Workspace, COND_MAX};
@@ -50,3 +51,5 @@ mod python_conv;
 mod python_engine;
 #[cfg(feature = "python")]
 mod python_grad;
+#[cfg(feature = "python")]
+mod python_tcn;

@@ -4,6 +4,9 @@ Both encoders run over a whole sequence at once (one causal pass gives z at ever
 training and evaluation use them; `tcn_window_z` re-runs the TCN on a 63-step window per sample and exists
 only to prove that both give the same z.
 
+On the CPU in float32 `TCNEncoder.forward` runs on the native training kernel (native_tcn.py, rust/tcn.rs),
+which computes what the torch code below computes.
+
 Input normalisation (`Normalizer`, state_dict `norm.ctx_mean`, `norm.ctx_std`): (x − mean)/std, then
 non-finite → 0 (the training mean), as in DESIGN.md section 2.
 """
@@ -12,6 +15,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 import torch.nn.functional as F
+
+from . import native_tcn
 
 
 class Normalizer(nn.Module):
@@ -71,6 +76,8 @@ class TCNEncoder(nn.Module):
 
     def forward(self, x: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
         """x (B, T, C) normalised -> z (B, T, hidden). keep (B, T) bool/float: 0 before the trial start."""
+        if native_tcn.usable(self, x):
+            return native_tcn.encode(self, x, keep)
         h = x.transpose(1, 2)
         k = None
         if keep is not None:
