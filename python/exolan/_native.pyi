@@ -50,6 +50,29 @@ class TermsCall:
     def samples(self) -> int:
         """Samples of the forward pass."""
 
+def tcn_forward(
+    c_in: int,
+    hidden: int,
+    levels: int,
+    kernel: int,
+    weights: list[_Arr],
+    x: _Arr,
+    keep: _Arr,
+    z: _Arr,
+    tape: bool,
+    threads: int,
+) -> TcnCall | None:
+    """The TCN encoder's training kernel (rust/tcn.rs): z (B, T, hidden) written into `z` from x (B, T, c_in) and
+    keep (B, T) (float32 or float64, all alike), the convs' [W, b, ...] in block order (conv1, conv2, res where
+    present); with `tape`, the call to take the reverse pass from (python/exolan/native_tcn.py)."""
+
+class TcnCall:
+    def backward(self, dz: _Arr, dx: _Arr | None, threads: int) -> list[tuple[_Arr, _Arr]]:
+        """The convs' weight gradients [(dW, db), ...] from dz (B, T, hidden); dx (B, T, c_in) written where given."""
+    @property
+    def batch(self) -> int:
+        """Sequences of the forward pass."""
+
 class Engine:
     """A loaded model; batch methods take arrays with the leading dimension N or B in place."""
 

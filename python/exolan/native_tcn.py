@@ -8,22 +8,22 @@ needs in one tape, and sums every weight gradient in a fixed order, so its resul
 count.
 
 Used on the CPU for float32 whenever the native module is built; float64 stays on torch's path (the oracle the
-tests compare against), as do CUDA tensors. The environment variable EXOLAN_NATIVE_TERMS=0 turns it off, with
-the terms kernel (native_terms.py): one switch for the native training kernels.
+tests compare against), as do CUDA tensors. The switch and the threads, shared with the terms kernel:
+`exolan.native`.
 """
 from __future__ import annotations
 
-import os
-
 import torch
 
-from .native_terms import _native, _np
+from . import native
+from .native import _native
+from .native_terms import _np
 
 DTYPES = (torch.float32,)
 
 
 def enabled() -> bool:
-    return _native is not None and hasattr(_native, "tcn_forward") and os.environ.get("EXOLAN_NATIVE_TERMS", "1") != "0"
+    return native.enabled("tcn_forward")
 
 
 def usable(enc, x: torch.Tensor) -> bool:
@@ -46,14 +46,14 @@ class _Encode(torch.autograd.Function):
         B, T, C = x.shape
         z = torch.empty(B, T, enc.z_dim, dtype=x.dtype)
         ctx.call = _native.tcn_forward(C, enc.z_dim, enc.levels, enc.kernel, [_np(p) for p in params], _np(x),
-                                       _np(keep), z.numpy(), tape, torch.get_num_threads())
+                                       _np(keep), z.numpy(), tape, native.threads())
         ctx.x_shape = x.shape
         return z
 
     @staticmethod
     def backward(ctx, dz):
         dx = torch.empty(ctx.x_shape, dtype=dz.dtype) if ctx.needs_input_grad[2] else None
-        grads = ctx.call.backward(_np(dz), None if dx is None else dx.numpy(), torch.get_num_threads())
+        grads = ctx.call.backward(_np(dz), None if dx is None else dx.numpy(), native.threads())
         return (None, None, dx, None, *(torch.from_numpy(a) for pair in grads for a in pair))
 
 
