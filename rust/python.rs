@@ -372,6 +372,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Engine>()?;
     m.add_function(wrap_pyfunction!(crate::python_grad::terms_forward, m)?)?;
     m.add_class::<crate::python_grad::TermsCall>()?;
+    m.add_function(wrap_pyfunction!(crate::python_grad::mlp_forward, m)?)?;
+    m.add_class::<crate::python_grad::MlpCall>()?;
     m.add_function(wrap_pyfunction!(crate::python_tcn::tcn_forward, m)?)?;
     m.add_class::<crate::python_tcn::TcnCall>()?;
     Ok(())

@@ -1,4 +1,5 @@
-//! The binding of the training kernel (`grad`): `terms_forward` and `TermsCall.backward`, float32 or
+//! The binding of the training kernels (`grad`): `terms_forward` and `TermsCall.backward`, `mlp_forward` and
+//! `MlpCall.backward`, float32 or
 //! float64 throughout, every array C-contiguous and written in place (python/exolan/native_terms.py owns
 //! the tensors). The GIL is released while the kernel runs.
 
@@ -6,7 +7,7 @@ use numpy::{Element, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArrayDyn, PyR
 use pyo3::prelude::*;
 use pyo3::types::PyList;
 
-use crate::grad::{Kernel, KernelReal, LayerRef, NetGrads, Tape};
+use crate::grad::{KernelReal, LayerRef, MlpKernel, NetGrads, Tape, TermsKernel as Kernel};
 use crate::python_conv::{bad, pool_for, to_py};
 use crate::JointType;
 
@@ -146,6 +147,78 @@ impl TermsCall {
         match &self.call {
             Call::F32(_, t) => t.samples(),
             Call::F64(_, t) => t.samples(),
+        }
+    }
+}
+
+enum Mlp {
+    F32(MlpKernel<f32>, Tape<f32>),
+    F64(MlpKernel<f64>, Tape<f64>),
+}
+
+/// A plain MLP's forward pass, for its reverse pass.
+#[pyclass(module = "exolan._native")]
+pub(crate) struct MlpCall {
+    call: Mlp,
+}
+
+fn mlp_run<T: Element + KernelReal>(
+    py: Python<'_>, ws: &[PyReadonlyArrayDyn<'_, T>], x: &PyReadonlyArrayDyn<'_, T>, mut y: PyReadwriteArrayDyn<'_, T>,
+    keep: bool, threads: usize,
+) -> PyResult<(MlpKernel<T>, Tape<T>)> {
+    let kernel = MlpKernel::new(&layers("mlp", ws)?).map_err(to_py)?;
+    let (x, y) = (slice("x", x)?, slice_mut("y", &mut y)?);
+    let pool = pool_for(Some(threads.max(1)))?;
+    let mut tape = Tape::new();
+    py.detach(|| kernel.forward(x, y, if keep { Some(&mut tape) } else { None }, &pool)).map_err(to_py)?;
+    Ok((kernel, tape))
+}
+
+/// y (N, d_out) written from x (N, d_in) through the tanh MLP [W₀, b₀, …] (float32 or float64, all alike); with
+/// `keep`, returns the call for `backward`.
+#[pyfunction]
+#[pyo3(signature = (weights, x, y, keep, threads))]
+pub(crate) fn mlp_forward(py: Python<'_>, weights: &Bound<'_, PyList>, x: &Bound<'_, PyAny>, y: &Bound<'_, PyAny>,
+                          keep: bool, threads: usize) -> PyResult<Option<MlpCall>> {
+    macro_rules! run {
+        ($t:ty, $variant:ident) => {{
+            let ws: Vec<PyReadonlyArrayDyn<$t>> = weights.iter().map(|a| a.extract()).collect::<PyResult<_>>()?;
+            let (k, t) = mlp_run::<$t>(py, &ws, &x.extract()?, y.extract()?, keep, threads)?;
+            Ok(keep.then(|| MlpCall { call: Mlp::$variant(k, t) }))
+        }};
+    }
+    if x.cast::<numpy::PyArrayDyn<f32>>().is_ok() {
+        run!(f32, F32)
+    } else if x.cast::<numpy::PyArrayDyn<f64>>().is_ok() {
+        run!(f64, F64)
+    } else {
+        Err(bad("mlp: x must be a float32 or float64 array".into()))
+    }
+}
+
+fn mlp_back<'py, T: Element + KernelReal>(py: Python<'py>, k: &MlpKernel<T>, t: &Tape<T>, dy: &Bound<'py, PyAny>,
+                                          dx: Option<&Bound<'py, PyAny>>, threads: usize) -> PyResult<PyGrads<'py>> {
+    let dy: PyReadonlyArrayDyn<T> = dy.extract()?;
+    let mut dx: Option<PyReadwriteArrayDyn<T>> = dx.map(|d| d.extract()).transpose()?;
+    let dy = slice("dy", &dy)?;
+    let dx = match dx.as_mut() {
+        Some(d) => Some(slice_mut("dx", d)?),
+        None => None,
+    };
+    let pool = pool_for(Some(threads.max(1)))?;
+    let g = py.detach(|| k.backward(t, dy, dx, &pool)).map_err(to_py)?;
+    to_numpy(py, g, &k.shapes())
+}
+
+#[pymethods]
+impl MlpCall {
+    /// The weight gradients [(dW, db), …] from dy (N, d_out); dx (N, d_in) written where given.
+    #[pyo3(signature = (dy, dx, threads))]
+    fn backward<'py>(&self, py: Python<'py>, dy: &Bound<'py, PyAny>, dx: Option<&Bound<'py, PyAny>>, threads: usize)
+                     -> PyResult<PyGrads<'py>> {
+        match &self.call {
+            Mlp::F32(k, t) => mlp_back(py, k, t, dy, dx, threads),
+            Mlp::F64(k, t) => mlp_back(py, k, t, dy, dx, threads),
         }
     }
 }

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from . import native_terms
+from . import native_mlp, native_terms
 
 REVOLUTE = "revolute"
 PRISMATIC = "prismatic"
@@ -100,7 +100,9 @@ def mlp(d_in: int, hidden: int, d_out: int, layers: int = 2) -> nn.ModuleList:
 
 
 def mlp_forward(layers: nn.ModuleList, x: torch.Tensor) -> torch.Tensor:
-    """tanh MLP without derivatives (the heads, the LIM)."""
+    """tanh MLP without derivatives (the heads, the LIM); on the CPU in float32, the native kernel (native_mlp)."""
+    if native_mlp.usable(layers, x):
+        return native_mlp.forward(layers, x)
     # indexing, not slicing: slicing a ModuleList subclass (the LIM) would re-run its constructor
     h = x
     last = len(layers) - 1

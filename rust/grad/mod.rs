@@ -1,27 +1,34 @@
-//! The Lagrangian's terms with a reverse pass: the training kernel.
+//! The training kernels: networks with a hand-written reverse pass.
 //!
-//! `Kernel::forward` computes what `delan.Lagrangian.factor_terms` computes (L, H = L Lᵀ, c, g, from the
+//! `TermsKernel::forward` computes what `delan.Lagrangian.factor_terms` computes (L, H = L Lᵀ, c, g, from the
 //! inertia and potential networks with their q-tangents carried forward), optionally keeping a `Tape`;
-//! `Kernel::backward` takes the gradients of a loss with respect to L, H, c and g and returns those with
-//! respect to every weight, q, q̇ and z. Written out by hand, layer by layer (`net.rs`), per sample at the
-//! head (`head.rs`), on one matrix product (`gemm.rs`): no autograd graph, no tensor per elementwise op,
-//! and every layer's product fused over the value and tangent streams of a tile of samples.
+//! `TermsKernel::backward` takes the gradients of a loss with respect to L, H, c and g and returns those with
+//! respect to every weight, q, q̇ and z. `MlpKernel` does the same for a plain tanh MLP (the black-box heads,
+//! the learned insole mapping). Written out by hand, layer by layer (`net.rs`), per group of samples at the
+//! head (`head.rs`), on one matrix product (`gemm.rs`): no autograd graph, no tensor per elementwise op, and
+//! every layer's product fused over the value and tangent streams of a tile of samples.
 //!
 //! Samples go in tiles of `TILE`, tiles in chunks of `CHUNK_TILES`; chunks run on the pool's threads. Each
 //! chunk sums its weight gradients apart and the chunks' sums are added in chunk order, so the result is the
 //! same bit for bit at any thread count.
 
+
 pub(crate) mod gemm;
+mod dispatch;
 mod head;
+mod mlp;
 mod net;
+mod tape;
+mod terms;
+
+pub use dispatch::KernelReal;
+pub use mlp::MlpKernel;
+pub use tape::Tape;
+pub use terms::TermsKernel;
 
 use crate::error::{Error, Result};
-use crate::model::JointType;
-use crate::pool::{Chunks, Pool};
 use crate::real::Real;
-use crate::simd::{simd_dispatch, Simd};
-use head::{Lanes, Num, Outs, MMAX, NMAX};
-use net::{BackBufs, Layer, Net, Tile};
+use net::{Layer, Net};
 
 /// Samples per tile: a tile's activations stay in the core's caches through a layer's three products.
 pub const TILE: usize = 32;
@@ -31,27 +38,6 @@ pub const CHUNK_TILES: usize = 8;
 /// One network's weights as torch stores them: per layer (W: out × in row-major, b: out, out, in).
 pub type LayerRef<'a, T> = (&'a [T], &'a [T], usize, usize);
 
-/// The prepared weights of a Lagrangian (inertia network `l`, potential network `v`) and its shape.
-pub struct Kernel<T> {
-    n: usize,
-    dz: usize,
-    dphi: usize,
-    /// φ's columns of each joint: (cos, sin) for a revolute joint, (q, usize::MAX) for a prismatic one.
-    cols: Vec<(usize, usize)>,
-    offset: T,
-    v_scale: T,
-    l: Net<T>,
-    v: Net<T>,
-    simd: Simd,
-}
-
-/// What a forward pass keeps for the reverse one.
-pub struct Tape<T: KernelReal> {
-    samples: usize,
-    data: Vec<T>,
-    qd: Vec<T>,
-    q: Vec<T>,
-}
 
 /// Weight gradients of one network, in torch's layout: per layer (dW out × in, db out).
 pub type NetGrads<T> = Vec<(Vec<T>, Vec<T>)>;
@@ -74,193 +60,6 @@ fn check_net<T: Real>(name: &str, layers: &[LayerRef<T>], d_in: usize, d_out: us
     Ok(Net { layers: layers.iter().map(|&(w, b, out, inp)| Layer::new(w, b, out, inp)).collect() })
 }
 
-impl<T: KernelReal> Kernel<T> {
-    /// Prepare a Lagrangian's networks (copied, transposed and padded once per call).
-    pub fn new(joint_types: &[JointType], dz: usize, softplus_offset: f64, v_scale: f64,
-               l_layers: &[LayerRef<T>], v_layers: &[LayerRef<T>]) -> Result<Kernel<T>> {
-        let n = joint_types.len();
-        if n == 0 || n > NMAX {
-            return Err(Error::InputShape(format!("the training kernel handles 1 to {NMAX} joints, got {n}")));
-        }
-        let rev: Vec<usize> = (0..n).filter(|&j| joint_types[j] == JointType::Revolute).collect();
-        let r = rev.len();
-        let mut cols = vec![(0, usize::MAX); n];
-        let mut pri = 0;
-        for j in 0..n {
-            cols[j] = match rev.iter().position(|&x| x == j) {
-                Some(i) => (i, r + i),
-                None => {
-                    pri += 1;
-                    (2 * r + pri - 1, usize::MAX)
-                }
-            };
-        }
-        let dphi = 2 * r + pri;
-        let l = check_net("inertia", l_layers, dphi + dz, n * (n + 1) / 2)?;
-        let v = check_net("potential", v_layers, dphi + dz, 1)?;
-        Ok(Kernel { n, dz, dphi, cols, offset: T::of(softplus_offset), v_scale: T::of(v_scale), l, v, simd: crate::simd::detect() })
-    }
-
-    pub fn n(&self) -> usize {
-        self.n
-    }
-
-    /// (out, in) of every layer of the inertia and the potential network.
-    pub fn shapes(&self) -> (Vec<(usize, usize)>, Vec<(usize, usize)>) {
-        let of = |net: &Net<T>| net.layers.iter().map(|l| (l.out, l.inp)).collect();
-        (of(&self.l), of(&self.v))
-    }
-
-    /// L, H (N × n × n), c and g (N × n) at N samples of q, q̇ (N × n) and z (N × dz); with `tape`, what the
-    /// reverse pass needs is kept there.
-    #[allow(clippy::too_many_arguments)]
-    pub fn forward(&self, q: &[T], qd: &[T], z: &[T], l_out: &mut [T], h_out: &mut [T], c_out: &mut [T],
-                   g_out: &mut [T], tape: Option<&mut Tape<T>>, pool: &Pool) -> Result<()> {
-        let (n, dz) = (self.n, self.dz);
-        let samples = q.len() / n;
-        if q.len() != samples * n || qd.len() != q.len() || z.len() != samples * dz
-            || l_out.len() != samples * n * n || h_out.len() != samples * n * n || c_out.len() != q.len() || g_out.len() != q.len() {
-            return Err(Error::InputShape(format!("forward: inconsistent lengths for {samples} samples of {n} joints and z of {dz}")));
-        }
-        let tiles = samples.div_ceil(TILE);
-        let chunks = tiles.div_ceil(CHUNK_TILES);
-        let tl = self.tile_len();
-        let mut none = Vec::new();
-        let (data, keep): (&mut [T], bool) = match tape {
-            Some(t) => {
-                t.samples = samples;
-                if t.data.capacity() == 0 {
-                    t.data = reuse::<T>(tiles * tl);
-                }
-                // every value is written by the forward pass before anything reads it: no need to clear
-                t.data.resize(tiles * tl, T::default());
-                t.data.truncate(tiles * tl);
-                t.q.clear();
-                t.q.extend_from_slice(q);
-                t.qd.clear();
-                t.qd.extend_from_slice(qd);
-                (&mut t.data, true)
-            }
-            None => (&mut none, false),
-        };
-        let per_chunk = CHUNK_TILES * tl;
-        let outs = (Chunks::new(data, per_chunk), Chunks::new(l_out, CHUNK_TILES * TILE * n * n),
-                    Chunks::new(h_out, CHUNK_TILES * TILE * n * n), Chunks::new(c_out, CHUNK_TILES * TILE * n),
-                    Chunks::new(g_out, CHUNK_TILES * TILE * n));
-        let job = FwdJob { k: self, q, qd, z, samples, keep };
-        pool.run(chunks, &|ci| {
-            // SAFETY: each chunk index is taken by one task only.
-            let (tp, lo, ho, co, go) = unsafe { (outs.0.get(ci), outs.1.get(ci), outs.2.get(ci), outs.3.get(ci), outs.4.get(ci)) };
-            T::forward_chunk(self.simd, &job, ci, tp, [lo, ho, co, go]);
-        });
-        Ok(())
-    }
-
-    /// The reverse pass over a tape of `forward`: the gradients of L, H, c, g in, those of q, q̇, z out, and
-    /// every weight's (returned in torch's layout, inertia network first).
-    #[allow(clippy::too_many_arguments)]
-    pub fn backward(&self, tape: &Tape<T>, dl: &[T], dh: &[T], dc: &[T], dg: &[T], dq: &mut [T], dqd: &mut [T],
-                    dz: &mut [T], pool: &Pool) -> Result<(NetGrads<T>, NetGrads<T>)> {
-        let (n, samples) = (self.n, tape.samples);
-        if tape.data.len() != samples.div_ceil(TILE) * self.tile_len() {
-            return Err(Error::InputShape("backward: the tape was not written by this kernel's forward pass".into()));
-        }
-        if dl.len() != samples * n * n || dh.len() != dl.len() || dc.len() != samples * n || dg.len() != dc.len()
-            || dq.len() != dc.len() || dqd.len() != dc.len() || dz.len() != samples * self.dz {
-            return Err(Error::InputShape(format!("backward: inconsistent lengths for {samples} samples of {n} joints")));
-        }
-        let chunks = samples.div_ceil(TILE).div_ceil(CHUNK_TILES);
-        let (gl, gv) = (self.l.grad_len(), self.v.grad_len());
-        let mut partial = vec![T::default(); chunks * (gl + gv)];
-        {
-            let outs = (Chunks::new(&mut partial, gl + gv), Chunks::new(dq, CHUNK_TILES * TILE * n),
-                        Chunks::new(dqd, CHUNK_TILES * TILE * n), Chunks::new(dz, CHUNK_TILES * TILE * self.dz));
-            let job = BwdJob { k: self, tape, dl, dh, dc, dg };
-            pool.run(chunks, &|ci| {
-                // SAFETY: each chunk index is taken by one task only.
-                let (pg, q, qd, z) = unsafe { (outs.0.get(ci), outs.1.get(ci), outs.2.get(ci), outs.3.get(ci)) };
-                T::backward_chunk(self.simd, &job, ci, pg, [q, qd, z]);
-            });
-        }
-        let mut total = vec![T::default(); gl + gv];
-        for part in partial.chunks_exact(gl + gv) {
-            for (t, p) in total.iter_mut().zip(part) {
-                *t = *t + *p;
-            }
-        }
-        Ok((unpad(&self.l, &total[..gl]), unpad(&self.v, &total[gl..])))
-    }
-}
-
-impl<T: Real> Kernel<T> {
-    fn streams(&self) -> usize {
-        self.n + 1
-    }
-
-    /// Values of one tile's tape: x, ∂φ/∂q, then each network's blocks.
-    fn tile_len(&self) -> usize {
-        let rows = self.streams() * TILE;
-        TILE * self.l.layers[0].ip + TILE * self.n * 2 + self.l.tape_len(rows) + self.v.tape_len(rows)
-    }
-
-    fn width(&self) -> usize {
-        self.l.width().max(self.v.width())
-    }
-}
-
-impl<T: KernelReal> Tape<T> {
-    pub fn new() -> Tape<T> {
-        Tape { samples: 0, data: Vec::new(), qd: Vec::new(), q: Vec::new() }
-    }
-    pub fn samples(&self) -> usize {
-        self.samples
-    }
-}
-
-impl<T: KernelReal> Default for Tape<T> {
-    fn default() -> Self {
-        Tape::new()
-    }
-}
-
-/// A tape's buffer (tens of MB at a training batch) goes back to a small free list when the tape is dropped,
-/// so the next step's forward pass neither clears it nor faults its pages in again.
-impl<T: KernelReal> Drop for Tape<T> {
-    fn drop(&mut self) {
-        let data = std::mem::take(&mut self.data);
-        if data.capacity() > 0 {
-            recycle(data);
-        }
-    }
-}
-
-/// Free tape buffers per float type (at most `KEEP`, the largest kept).
-const KEEP: usize = 4;
-
-fn recycle<T: Send + 'static>(data: Vec<T>) {
-    use std::any::Any;
-    let mut list = free_list().lock().unwrap_or_else(|p| p.into_inner());
-    list.push(Box::new(data) as Box<dyn Any + Send>);
-    if list.len() > KEEP {
-        list.remove(0);
-    }
-}
-
-fn free_list() -> &'static std::sync::Mutex<Vec<Box<dyn std::any::Any + Send>>> {
-    static FREE: std::sync::OnceLock<std::sync::Mutex<Vec<Box<dyn std::any::Any + Send>>>> = std::sync::OnceLock::new();
-    FREE.get_or_init(|| std::sync::Mutex::new(Vec::new()))
-}
-
-/// A freed tape buffer of T with room for `len` values if there is one, else a new empty one.
-fn reuse<T: 'static>(len: usize) -> Vec<T> {
-    let mut list = free_list().lock().unwrap_or_else(|p| p.into_inner());
-    let pos = list.iter().position(|b| b.downcast_ref::<Vec<T>>().is_some_and(|v| v.capacity() >= len));
-    match pos {
-        Some(i) => *list.remove(i).downcast::<Vec<T>>().expect("checked above"),
-        None => Vec::new(),
-    }
-}
-
 /// A gradient buffer's padded blocks back in torch's layout.
 fn unpad<T: Real>(net: &Net<T>, g: &[T]) -> NetGrads<T> {
     let mut off = 0;
@@ -272,261 +71,6 @@ fn unpad<T: Real>(net: &Net<T>, g: &[T]) -> NetGrads<T> {
     }).collect()
 }
 
-#[doc(hidden)]
-pub struct FwdJob<'a, T> {
-    k: &'a Kernel<T>,
-    q: &'a [T],
-    qd: &'a [T],
-    z: &'a [T],
-    samples: usize,
-    keep: bool,
-}
-
-#[doc(hidden)]
-pub struct BwdJob<'a, T: KernelReal> {
-    k: &'a Kernel<T>,
-    tape: &'a Tape<T>,
-    dl: &'a [T],
-    dh: &'a [T],
-    dc: &'a [T],
-    dg: &'a [T],
-}
-
-/// A tile's x = [φ(q), z, 0…] and ∂φ/∂q (samples past the end: q = 0, z = 0; their outputs are dropped).
-#[inline(always)]
-fn tile_inputs<T: Real>(k: &Kernel<T>, q: &[T], z: &[T], first: usize, count: usize, x: &mut [T], dphi: &mut [T]) {
-    let (n, dz, ip) = (k.n, k.dz, k.l.layers[0].ip);
-    x.fill(T::default());
-    dphi.fill(T::default());
-    for r in 0..count {
-        let s = first + r;
-        for j in 0..n {
-            let (ca, cb) = k.cols[j];
-            let qj = q[s * n + j];
-            if cb == usize::MAX {
-                x[r * ip + ca] = qj;
-                dphi[(r * n + j) * 2] = T::of(1.0);
-            } else {
-                let (sn, cs) = qj.sin_cos();
-                x[r * ip + ca] = cs;
-                x[r * ip + cb] = sn;
-                dphi[(r * n + j) * 2] = -sn;
-                dphi[(r * n + j) * 2 + 1] = cs;
-            }
-        }
-        x[r * ip + k.dphi..r * ip + k.dphi + dz].copy_from_slice(&z[s * dz..(s + 1) * dz]);
-    }
-    // padding rows keep φ(0) so every row is a valid input (cos 0 = 1)
-    for r in count..TILE {
-        for j in 0..n {
-            let (ca, cb) = k.cols[j];
-            if cb != usize::MAX {
-                x[r * ip + ca] = T::of(1.0);
-            }
-        }
-    }
-}
-
-/// Samples that go through the head side by side (a tile is a whole number of such groups).
-const HL: usize = 16;
-type Ln<T> = Lanes<T, HL>;
-const _: () = assert!(TILE % HL == 0);
-
-/// The network outputs of samples r0..r0+HL of a tile from the output blocks of its tape.
-#[inline(always)]
-fn outs_of<T: Real>(k: &Kernel<T>, lo: &[T], vo: &[T], r0: usize) -> (Outs<Ln<T>>, [Ln<T>; NMAX]) {
-    let (n, m) = (k.n, k.n * (k.n + 1) / 2);
-    let (opl, opv) = (k.l.layers.last().unwrap().op, k.v.layers.last().unwrap().op);
-    let z = Ln::<T>::default();
-    let mut o = Outs { u: [z; MMAX], ud: [[z; MMAX]; NMAX] };
-    let mut gv = [z; NMAX];
-    for l in 0..HL {
-        let r = r0 + l;
-        for i in 0..m {
-            o.u[i].0[l] = lo[r * opl + i];
-        }
-        for kk in 0..n {
-            let row = (1 + kk) * TILE + r;
-            for i in 0..m {
-                o.ud[kk][i].0[l] = lo[row * opl + i];
-            }
-            gv[kk].0[l] = vo[row * opv];
-        }
-    }
-    (o, gv)
-}
-
-/// Rows r0.. of an (N × w) array as lanes (zero past `count` rows).
-#[inline(always)]
-fn gather<T: Real, const W: usize>(a: &[T], w: usize, first: usize, count: usize) -> [Ln<T>; W] {
-    let mut out = [Ln::<T>::default(); W];
-    for l in 0..HL.min(count) {
-        for i in 0..w {
-            out[i].0[l] = a[(first + l) * w + i];
-        }
-    }
-    out
-}
-
-/// Lanes back into rows first.. of an (N × w) array (the first `count` lanes).
-#[inline(always)]
-fn scatter<T: Real>(v: &[Ln<T>], w: usize, a: &mut [T], first: usize, count: usize) {
-    for l in 0..HL.min(count) {
-        for i in 0..w {
-            a[(first + l) * w + i] = v[i].0[l];
-        }
-    }
-}
-
-#[inline(always)]
-fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &FwdJob<T>, ci: usize, tape: &mut [T], outs: [&mut [T]; 4]) {
-    let k = job.k;
-    let (n, s) = (k.n, k.streams());
-    let rows = s * TILE;
-    let (ip0, tl) = (k.l.layers[0].ip, k.tile_len());
-    let mut xs = vec![T::default(); rows * k.width()];
-    // without a tape, one tile's worth of it is reused tile after tile
-    let mut own = if job.keep { Vec::new() } else { vec![T::default(); tl] };
-    let [lo, ho, co, go] = outs;
-    let first_tile = ci * CHUNK_TILES;
-    let tiles = (job.samples.div_ceil(TILE) - first_tile).min(CHUNK_TILES);
-    for ti in 0..tiles {
-        let first = (first_tile + ti) * TILE;
-        let count = (job.samples - first).min(TILE);
-        let tt = if job.keep { &mut tape[ti * tl..(ti + 1) * tl] } else { &mut own[..] };
-        let (x, rest) = tt.split_at_mut(TILE * ip0);
-        let (dphi, rest) = rest.split_at_mut(TILE * n * 2);
-        tile_inputs(k, job.q, job.z, first, count, x, dphi);
-        let (lt, vt) = rest.split_at_mut(k.l.tape_len(rows));
-        let tile = Tile { t: TILE, s, x, dphi, cols: &k.cols };
-        net::forward::<T, FMA, WIDE>(&k.l, &tile, lt, &mut xs);
-        net::forward::<T, FMA, WIDE>(&k.v, &tile, vt, &mut xs);
-        let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[k.v.out_offset(rows)..]);
-        let of = |x: T| Ln::<T>::of(x.to_f64());
-        for r0 in (0..count).step_by(HL) {
-            let (o, gv) = outs_of(k, lo_t, vo_t, r0);
-            let c = count - r0;
-            let qd = gather::<T, NMAX>(job.qd, n, first + r0, c);
-            let z = Ln::<T>::default();
-            let (mut l, mut h, mut cc, mut g) = ([z; NMAX * NMAX], [z; NMAX * NMAX], [z; NMAX], [z; NMAX]);
-            head::forward(n, &o, &gv, &qd, of(k.offset), of(k.v_scale), &mut l, &mut h, &mut cc, &mut g);
-            let e = ti * TILE + r0;
-            scatter(&l[..n * n], n * n, lo, e, c);
-            scatter(&h[..n * n], n * n, ho, e, c);
-            scatter(&cc[..n], n, co, e, c);
-            scatter(&g[..n], n, go, e, c);
-        }
-    }
-}
-
-#[inline(always)]
-fn backward_chunk<T: KernelReal, const FMA: bool, const WIDE: bool>(job: &BwdJob<T>, ci: usize, grad: &mut [T], outs: [&mut [T]; 3]) {
-    let k = job.k;
-    let (n, s, dz) = (k.n, k.streams(), k.dz);
-    let rows = s * TILE;
-    let (ip0, tl) = (k.l.layers[0].ip, k.tile_len());
-    let (opl, opv) = (k.l.layers.last().unwrap().op, k.v.layers.last().unwrap().op);
-    let samples = job.tape.samples;
-    let mut bufs = BackBufs::new(rows * k.width());
-    let mut gx = vec![T::default(); TILE * ip0];
-    let mut gdphi = vec![T::default(); TILE * n * 2];
-    let (gl, gv_) = grad.split_at_mut(k.l.grad_len());
-    let [dq, dqd, dzo] = outs;
-    let first_tile = ci * CHUNK_TILES;
-    let tiles = (samples.div_ceil(TILE) - first_tile).min(CHUNK_TILES);
-    for ti in 0..tiles {
-        let first = (first_tile + ti) * TILE;
-        let count = (samples - first).min(TILE);
-        let tt = &job.tape.data[(first_tile + ti) * tl..(first_tile + ti + 1) * tl];
-        let (x, rest) = tt.split_at(TILE * ip0);
-        let (dphi, rest) = rest.split_at(TILE * n * 2);
-        let (lt, vt) = rest.split_at(k.l.tape_len(rows));
-        let tile = Tile { t: TILE, s, x, dphi, cols: &k.cols };
-        let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[k.v.out_offset(rows)..]);
-        // the head's reverse, sample by sample, into the output blocks' gradients
-        let mut gu_l = vec![T::default(); rows * opl];
-        let mut gu_v = vec![T::default(); rows * opv];
-        let m = n * (n + 1) / 2;
-        let of = |x: T| Ln::<T>::of(x.to_f64());
-        let nn = n * n;
-        for r0 in (0..count).step_by(HL) {
-            let (o, _) = outs_of(k, lo_t, vo_t, r0);
-            let (c, e) = (count - r0, first + r0);
-            let qd = gather::<T, NMAX>(&job.tape.qd, n, e, c);
-            let (dl, dh) = (gather::<T, { NMAX * NMAX }>(job.dl, nn, e, c), gather::<T, { NMAX * NMAX }>(job.dh, nn, e, c));
-            let (dc, dg) = (gather::<T, NMAX>(job.dc, n, e, c), gather::<T, NMAX>(job.dg, n, e, c));
-            let back = head::backward(n, &o, &qd, of(k.offset), of(k.v_scale), &dl, &dh, &dc, &dg);
-            for l in 0..HL {
-                let r = r0 + l;
-                for i in 0..m {
-                    gu_l[r * opl + i] = back.u[i].0[l];
-                }
-                for kk in 0..n {
-                    let row = (1 + kk) * TILE + r;
-                    for i in 0..m {
-                        gu_l[row * opl + i] = back.ud[kk][i].0[l];
-                    }
-                    gu_v[row * opv] = back.gv[kk].0[l];
-                }
-            }
-            scatter(&back.qd[..n], n, dqd, ti * TILE + r0, c);
-        }
-        gx.fill(T::default());
-        gdphi.fill(T::default());
-        bufs.g[..rows * opl].copy_from_slice(&gu_l);
-        net::backward::<T, FMA, WIDE>(&k.l, &tile, lt, &mut bufs, gl, &mut gx, &mut gdphi);
-        bufs.g[..rows * opv].copy_from_slice(&gu_v);
-        net::backward::<T, FMA, WIDE>(&k.v, &tile, vt, &mut bufs, gv_, &mut gx, &mut gdphi);
-        // x̄ and ∂φ/∂q's gradient to q̄ (φ = cos, sin: ∂/∂q of (cos, sin, −sin, cos) = (−sin, cos, −cos, −sin)); z̄
-        for r in 0..count {
-            let e = ti * TILE + r;
-            for j in 0..n {
-                let (ca, cb) = k.cols[j];
-                let gp = &gdphi[(r * n + j) * 2..(r * n + j) * 2 + 2];
-                dq[e * n + j] = if cb == usize::MAX {
-                    gx[r * ip0 + ca]
-                } else {
-                    let (sn, cs) = (x[r * ip0 + cb], x[r * ip0 + ca]);
-                    gx[r * ip0 + cb] * cs - gx[r * ip0 + ca] * sn - gp[0] * cs - gp[1] * sn
-                };
-            }
-            dzo[e * dz..(e + 1) * dz].copy_from_slice(&gx[r * ip0 + k.dphi..r * ip0 + k.dphi + dz]);
-        }
-    }
-}
-
-/// The float types the kernel runs in, each with its SIMD dispatch.
-pub trait KernelReal: Real {
-    #[doc(hidden)]
-    fn forward_chunk(simd: Simd, job: &FwdJob<Self>, ci: usize, tape: &mut [Self], outs: [&mut [Self]; 4]);
-    #[doc(hidden)]
-    fn backward_chunk(simd: Simd, job: &BwdJob<Self>, ci: usize, grad: &mut [Self], outs: [&mut [Self]; 3]);
-}
-
-macro_rules! kernel_real {
-    ($t:ty, $f:ident, $fd:ident, $b:ident, $bd:ident) => {
-        #[inline(always)]
-        fn $f<const FMA: bool, const WIDE: bool>(job: &FwdJob<$t>, ci: usize, tape: &mut [$t], outs: [&mut [$t]; 4]) {
-            forward_chunk::<$t, FMA, WIDE>(job, ci, tape, outs)
-        }
-        simd_dispatch!(fn $fd(job: &FwdJob<$t>, ci: usize, tape: &mut [$t], outs: [&mut [$t]; 4]) = $f;);
-        #[inline(always)]
-        fn $b<const FMA: bool, const WIDE: bool>(job: &BwdJob<$t>, ci: usize, grad: &mut [$t], outs: [&mut [$t]; 3]) {
-            backward_chunk::<$t, FMA, WIDE>(job, ci, grad, outs)
-        }
-        simd_dispatch!(fn $bd(job: &BwdJob<$t>, ci: usize, grad: &mut [$t], outs: [&mut [$t]; 3]) = $b;);
-        impl KernelReal for $t {
-            fn forward_chunk(simd: Simd, job: &FwdJob<$t>, ci: usize, tape: &mut [$t], outs: [&mut [$t]; 4]) {
-                $fd(simd, job, ci, tape, outs)
-            }
-            fn backward_chunk(simd: Simd, job: &BwdJob<$t>, ci: usize, grad: &mut [$t], outs: [&mut [$t]; 3]) {
-                $bd(simd, job, ci, grad, outs)
-            }
-        }
-    };
-}
-kernel_real!(f32, fwd32, fwd32_simd, bwd32, bwd32_simd);
-kernel_real!(f64, fwd64, fwd64_simd, bwd64, bwd64_simd);
 
 #[cfg(test)]
 mod tests;

@@ -2,6 +2,8 @@
 //! at any thread count. (The comparison with torch's autograd lives in tests/test_native_terms.py.)
 
 use super::*;
+use crate::model::JointType;
+use crate::pool::Pool;
 
 struct Rng(u64);
 impl Rng {
@@ -37,13 +39,13 @@ fn refs(ls: &[(Vec<f64>, Vec<f64>, usize, usize)]) -> Vec<LayerRef<'_, f64>> {
     ls.iter().map(|(w, b, o, i)| (&w[..], &b[..], *o, *i)).collect()
 }
 
-fn kernel(s: &Setup) -> Kernel<f64> {
-    Kernel::new(&s.types, s.dz, 1e-2, 3.0, &refs(&s.l), &refs(&s.v)).unwrap()
+fn kernel(s: &Setup) -> TermsKernel<f64> {
+    TermsKernel::new(&s.types, s.dz, 1e-2, 3.0, &refs(&s.l), &refs(&s.v)).unwrap()
 }
 
 /// The scalar loss Σ wL·L + wH·H + wc·c + wg·g of a forward pass.
-fn loss(k: &Kernel<f64>, q: &[f64], qd: &[f64], z: &[f64], w: &[Vec<f64>; 4], pool: &Pool) -> f64 {
-    let (nn, n) = (q.len() / k.n * k.n * k.n, q.len());
+fn loss(k: &TermsKernel<f64>, q: &[f64], qd: &[f64], z: &[f64], w: &[Vec<f64>; 4], pool: &Pool) -> f64 {
+    let (nn, n) = (q.len() / k.n() * k.n() * k.n(), q.len());
     let (mut l, mut h, mut c, mut g) = (vec![0.0; nn], vec![0.0; nn], vec![0.0; n], vec![0.0; n]);
     k.forward(q, qd, z, &mut l, &mut h, &mut c, &mut g, None, pool).unwrap();
     [l, h, c, g].iter().zip(w).map(|(a, b)| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>()).sum()
@@ -61,7 +63,7 @@ fn gradients_match_finite_differences() {
         let mut rng = Rng(7);
         let s = setup(types, dz, 10, &mut rng);
         let k = kernel(&s);
-        let (n, ns) = (k.n, 5);
+        let (n, ns) = (k.n(), 5);
         let q = rng.vec(ns * n, 2.0);
         let qd = rng.vec(ns * n, 1.5);
         let z = rng.vec(ns * dz, 1.0);
@@ -140,7 +142,7 @@ fn speed_f32() {
     let (l, v) = (r(&l), r(&v));
     let lr: Vec<LayerRef<f32>> = l.iter().map(|(w, b, o, i)| (&w[..], &b[..], *o, *i)).collect();
     let vr: Vec<LayerRef<f32>> = v.iter().map(|(w, b, o, i)| (&w[..], &b[..], *o, *i)).collect();
-    let k = Kernel::<f32>::new(&s.types, 16, 1e-2, 3.0, &lr, &vr).unwrap();
+    let k = TermsKernel::<f32>::new(&s.types, 16, 1e-2, 3.0, &lr, &vr).unwrap();
     let ns = 8192;
     let q: Vec<f32> = rng.vec(ns * 2, 2.0).iter().map(|x| *x as f32).collect();
     let qd: Vec<f32> = rng.vec(ns * 2, 1.0).iter().map(|x| *x as f32).collect();
@@ -155,6 +157,53 @@ fn speed_f32() {
         let (mut dq, mut dqd, mut dz) = (vec![0f32; ns * 2], vec![0f32; ns * 2], vec![0f32; ns * 16]);
         let t = std::time::Instant::now();
         k.backward(&tape, &lo, &h, &c, &g, &mut dq, &mut dqd, &mut dz, &pool).unwrap();
-        println!("forward {:?} backward {:?} simd {:?}", t1, t.elapsed(), k.simd);
+        println!("forward {:?} backward {:?} simd {:?}", t1, t.elapsed(), crate::simd::detect());
+    }
+}
+
+#[test]
+fn mlp_gradients_match_finite_differences_and_threads_agree() {
+    let mut rng = Rng(11);
+    let dims = [9usize, 20, 20, 3];
+    let layers: Vec<(Vec<f64>, Vec<f64>, usize, usize)> =
+        (0..3).map(|i| (rng.vec(dims[i + 1] * dims[i], 0.5), rng.vec(dims[i + 1], 0.3), dims[i + 1], dims[i])).collect();
+    let ns = 2 * CHUNK_TILES * TILE + 5;
+    let x = rng.vec(ns * 9, 1.5);
+    let w = rng.vec(ns * 3, 1.0);
+    let k = MlpKernel::new(&refs(&layers)).unwrap();
+    let loss = |k: &MlpKernel<f64>, x: &[f64]| {
+        let mut y = vec![0.0; ns * 3];
+        k.forward(x, &mut y, None, &Pool::new(1).unwrap()).unwrap();
+        y.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let mut runs = Vec::new();
+    for threads in [1, 2] {
+        let pool = Pool::new(threads).unwrap();
+        let (mut y, mut tape) = (vec![0.0; ns * 3], Tape::new());
+        k.forward(&x, &mut y, Some(&mut tape), &pool).unwrap();
+        let mut dx = vec![0.0; ns * 9];
+        let g = k.backward(&tape, &w, Some(&mut dx), &pool).unwrap();
+        runs.push((y, dx, g));
+    }
+    assert!(runs[0] == runs[1], "thread counts disagree");
+    let (_, dx, g) = &runs[0];
+    let eps = 1e-6;
+    for i in (0..ns * 9).step_by(97) {
+        let (mut a, mut b) = (x.clone(), x.clone());
+        a[i] += eps;
+        b[i] -= eps;
+        let num = (loss(&k, &a) - loss(&k, &b)) / (2.0 * eps);
+        assert!((dx[i] - num).abs() < 1e-6 * (1.0 + num.abs()), "dx[{i}]: {} vs {num}", dx[i]);
+    }
+    for (li, (dw, db)) in g.iter().enumerate() {
+        for (i, grad) in dw.iter().enumerate().step_by(13).chain(db.iter().enumerate().map(|(i, v)| (i + usize::MAX / 2, v))) {
+            let bump = |e: f64| {
+                let mut l2 = layers.clone();
+                if i >= usize::MAX / 2 { l2[li].1[i - usize::MAX / 2] += e } else { l2[li].0[i] += e }
+                loss(&MlpKernel::new(&refs(&l2)).unwrap(), &x)
+            };
+            let num = (bump(eps) - bump(-eps)) / (2.0 * eps);
+            assert!((grad - num).abs() < 1e-6 * (1.0 + num.abs()), "layer {li} entry {i}: {grad} vs {num}");
+        }
     }
 }
