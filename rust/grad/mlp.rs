@@ -128,7 +128,6 @@ pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &Ml
     let k = job.k;
     let (ip0, tl, d_in, d_out) = (k.net.layers[0].ip, k.tile_len(), k.d_in, k.d_out);
     let opo = k.net.layers.last().unwrap().op;
-    let mut xs = vec![T::default(); TILE * k.net.width()];
     let mut own = if job.keep { Vec::new() } else { vec![T::default(); tl] };
     let first_tile = ci * CHUNK_TILES;
     let tiles = (job.samples.div_ceil(TILE) - first_tile).min(CHUNK_TILES);
@@ -142,7 +141,7 @@ pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &Ml
             x[r * ip0..r * ip0 + d_in].copy_from_slice(&job.x[(first + r) * d_in..(first + r + 1) * d_in]);
         }
         let tile = Tile { t: TILE, s: 1, x, dphi: &[], cols: &[] };
-        net::forward::<T, FMA, WIDE>(&k.net, &tile, nt, &mut xs);
+        net::forward::<T, FMA, WIDE>(&k.net, &tile, nt);
         let out = &nt[k.net.out_offset(TILE)..];
         for r in 0..count {
             let e = ti * TILE + r;

@@ -79,11 +79,10 @@ pub(crate) struct Tile<'a, T> {
     pub cols: &'a [(usize, usize)],
 }
 
-/// Forward pass of `net` over a tile, written straight into the tape: per hidden layer [h; ȧ] (the values
-/// after tanh, the tangents before it), then the output block [u; u̇]. `xs`: scratch of s·t·width values
-/// for each layer's input [h; (1 − h²) ȧ].
+/// Forward pass of `net` over a tile, written straight into the tape: per hidden layer its output [h; ḣ] (which
+/// is the next layer's input), then the output block [u; u̇].
 #[inline(always)]
-pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, tile: &Tile<T>, tape: &mut [T], xs: &mut [T]) {
+pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, tile: &Tile<T>, tape: &mut [T]) {
     let (t, s, n) = (tile.t, tile.s, tile.s - 1);
     let rows = s * t;
     let l0 = &net.layers[0];
@@ -113,9 +112,8 @@ pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, 
     let mut a = a;
     for li in 1..net.layers.len() {
         let w = net.layers[li - 1].op;
-        // tanh on the value rows in place (the tape keeps h and the tangents before the factor)
-        T::tanh_tangent::<FMA, WIDE>(&mut a[..t * w], t * w, 1);
-        layer_input::<T, FMA>(a, t, n, w, xs);
+        // [a; ȧ] -> [h; ḣ] in place: the tape's block and the next layer's input
+        T::tanh_tangent::<FMA, WIDE>(&mut a[..rows * w], t * w, s);
         let next = &net.layers[li];
         let no = next.op;
         let (b, r2) = std::mem::take(&mut rest).split_at_mut(rows * no);
@@ -129,29 +127,16 @@ pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, 
         }
         if next.out <= NARROW {
             for r in 0..rows {
-                let x = &xs[r * w..(r + 1) * w];
+                let x = &a[r * w..(r + 1) * w];
                 for j in 0..next.out {
                     b[r * no + j] = b[r * no + j] + dot::<T, FMA>(x, &next.w[j * w..(j + 1) * w]);
                 }
             }
         } else {
-            gemm::<T, FMA, WIDE>(rows, w, no, xs, w, 1, &next.wt, no, b, no, true);
+            gemm::<T, FMA, WIDE>(rows, w, no, a, w, 1, &next.wt, no, b, no, true);
         }
         a = b;
         rest = r2;
-    }
-}
-
-/// A hidden layer's output as the next layer's input: [h; (1 − h²) ȧ_k] from its tape block [h; ȧ_k].
-#[inline(always)]
-fn layer_input<T: Real, const FMA: bool>(blk: &[T], t: usize, n: usize, w: usize, xs: &mut [T]) {
-    let (h, ad) = blk[..(1 + n) * t * w].split_at(t * w);
-    let (xv, xt) = xs[..(1 + n) * t * w].split_at_mut(t * w);
-    xv.copy_from_slice(h);
-    for (xk, ak) in xt.chunks_exact_mut(t * w).zip(ad.chunks_exact(t * w)) {
-        for ((x, a), hh) in xk.iter_mut().zip(ak).zip(h) {
-            *x = *a * T::madd::<FMA>(-*hh, *hh, T::of(1.0));
-        }
     }
 }
 
@@ -159,13 +144,12 @@ fn layer_input<T: Real, const FMA: bool>(blk: &[T], t: usize, n: usize, w: usize
 pub(crate) struct BackBufs<T> {
     pub g: Vec<T>,
     pub gb: Vec<T>,
-    pub xs: Vec<T>,
     sb: Vec<T>,
 }
 
 impl<T: Real> BackBufs<T> {
     pub(crate) fn new(len: usize) -> BackBufs<T> {
-        BackBufs { g: vec![T::default(); len], gb: vec![T::default(); len], xs: vec![T::default(); len], sb: vec![T::default(); len] }
+        BackBufs { g: vec![T::default(); len], gb: vec![T::default(); len], sb: vec![T::default(); len] }
     }
 }
 
@@ -187,7 +171,7 @@ pub(crate) fn backward<T: Real, const FMA: bool, const WIDE: bool>(
         toff[l] = toff[l - 1] + rows * net.layers[l - 1].op;
         goff[l] = goff[l - 1] + net.layers[l - 1].grad_len();
     }
-    let BackBufs { g, gb, xs, sb } = bufs;
+    let BackBufs { g, gb, sb } = bufs;
     for li in (0..nl).rev() {
         let layer = &net.layers[li];
         let (ip, op) = (layer.ip, layer.op);
@@ -202,12 +186,12 @@ pub(crate) fn backward<T: Real, const FMA: bool, const WIDE: bool>(
             first_layer::<T, FMA, WIDE>(layer, tile, g, dw, gx, gdphi);
             return;
         }
+        // the layer's input: the layer below's output [h; ḣ], as the forward pass left it
         let prev = &tape[toff[li - 1]..toff[li - 1] + rows * ip];
-        layer_input::<T, FMA>(prev, t, n, ip, xs);
         if layer.out <= NARROW {
-            narrow_back::<T, FMA>(layer, rows, g, xs, dw, gb);
+            narrow_back::<T, FMA>(layer, rows, g, prev, dw, gb);
         } else {
-            gemm::<T, FMA, WIDE>(op, rows, ip, g, 1, op, xs, ip, dw, ip, true);
+            gemm::<T, FMA, WIDE>(op, rows, ip, g, 1, op, prev, ip, dw, ip, true);
             gemm::<T, FMA, WIDE>(rows, op, ip, g, op, 1, &layer.w, ip, gb, ip, false);
         }
         tanh_back::<T, FMA>(prev, t, n, ip, gb, sb);
@@ -237,22 +221,23 @@ fn narrow_back<T: Real, const FMA: bool>(layer: &Layer<T>, rows: usize, g: &[T],
     }
 }
 
-/// Through tanh and the tangents' (1 − h²) factor: the gradient of a layer's output [h̄; ḣ̄_k] in `g` becomes
-/// that of its pre-activations [ā; ǡ_k], from its tape block [h; ȧ_k] (the module's formula).
+/// Through tanh and the tangents' factor: the gradient of a layer's output [h̄; ḣ̄_k] in `g` becomes that of its
+/// pre-activations [ā; ǡ_k], from its output [h; ḣ_k] (ḣ_k = (1 − h²) ȧ_k, so ∂ḣ_k/∂a = −2h ḣ_k):
+/// ā = (1 − h²) h̄ − 2h Σ_k ḣ̄_k ḣ_k and ǡ_k = (1 − h²) ḣ̄_k.
 #[inline(always)]
 fn tanh_back<T: Real, const FMA: bool>(blk: &[T], t: usize, n: usize, w: usize, g: &mut [T], sb: &mut [T]) {
-    let (h, ad) = blk[..(1 + n) * t * w].split_at(t * w);
+    let (h, hd) = blk[..(1 + n) * t * w].split_at(t * w);
     let (gv, gt) = g[..(1 + n) * t * w].split_at_mut(t * w);
     let sb = &mut sb[..t * w];
     sb.fill(T::default());
-    for (gk, ak) in gt.chunks_exact_mut(t * w).zip(ad.chunks_exact(t * w)) {
-        for (((s, gg), a), hh) in sb.iter_mut().zip(gk.iter_mut()).zip(ak).zip(h) {
-            *s = T::madd::<FMA>(*gg, *a, *s);
+    for (gk, dk) in gt.chunks_exact_mut(t * w).zip(hd.chunks_exact(t * w)) {
+        for (((s, gg), d), hh) in sb.iter_mut().zip(gk.iter_mut()).zip(dk).zip(h) {
+            *s = T::madd::<FMA>(*gg, *d, *s);
             *gg = *gg * T::madd::<FMA>(-*hh, *hh, T::of(1.0));
         }
     }
     for ((gg, hh), s) in gv.iter_mut().zip(h).zip(sb.iter()) {
-        *gg = T::madd::<FMA>(-*hh, *hh, T::of(1.0)) * (*gg - T::of(2.0) * *hh * *s);
+        *gg = T::madd::<FMA>(-*hh, *hh, T::of(1.0)) * *gg - T::of(2.0) * *hh * *s;
     }
 }
 

@@ -272,7 +272,6 @@ pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &Fw
     let (n, s) = (k.n, k.streams());
     let rows = s * TILE;
     let (ip0, tl) = (k.l.layers[0].ip, k.tile_len());
-    let mut xs = vec![T::default(); rows * k.width()];
     // without a tape, one tile's worth of it is reused tile after tile
     let mut own = if job.keep { Vec::new() } else { vec![T::default(); tl] };
     let [lo, ho, co, go] = outs;
@@ -287,8 +286,8 @@ pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &Fw
         tile_inputs(k, job.q, job.z, first, count, x, dphi);
         let (lt, vt) = rest.split_at_mut(k.l.tape_len(rows));
         let tile = Tile { t: TILE, s, x, dphi, cols: &k.cols };
-        net::forward::<T, FMA, WIDE>(&k.l, &tile, lt, &mut xs);
-        net::forward::<T, FMA, WIDE>(&k.v, &tile, vt, &mut xs);
+        net::forward::<T, FMA, WIDE>(&k.l, &tile, lt);
+        net::forward::<T, FMA, WIDE>(&k.v, &tile, vt);
         let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[k.v.out_offset(rows)..]);
         let of = |x: T| Ln::<T>::of(x.to_f64());
         for r0 in (0..count).step_by(HL) {
