@@ -1,7 +1,6 @@
 //! The binding of the training kernels (`grad`): `terms_forward` and `TermsCall.backward`, `mlp_forward` and
-//! `MlpCall.backward`, float32 or
-//! float64 throughout, every array C-contiguous and written in place (python/exolan/native_terms.py owns
-//! the tensors). The GIL is released while the kernel runs.
+//! `MlpCall.backward`, float32 or float64 throughout, every array C-contiguous and written in place (the
+//! Python modules native_terms.py and native_mlp.py own the tensors). The GIL is released while a kernel runs.
 
 use numpy::{Element, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;

@@ -50,6 +50,15 @@ class TermsCall:
     def samples(self) -> int:
         """Samples of the forward pass."""
 
+def mlp_forward(weights: list[_Arr], x: _Arr, y: _Arr, keep: bool, threads: int) -> MlpCall | None:
+    """The plain tanh MLP's training kernel (rust/grad/mlp.rs): y (N, d_out) written from x (N, d_in) through
+    [W₀, b₀, ...] (float32 or float64, all alike); with `keep`, the call to take the reverse pass from
+    (python/exolan/native_mlp.py)."""
+
+class MlpCall:
+    def backward(self, dy: _Arr, dx: _Arr | None, threads: int) -> list[tuple[_Arr, _Arr]]:
+        """The weight gradients [(dW, db), ...] from dy (N, d_out); dx (N, d_in) written where given."""
+
 def tcn_forward(
     c_in: int,
     hidden: int,
