@@ -215,13 +215,7 @@ impl<T: TcnReal> Tcn<T> {
                 T::backward_chunk(self.simd, &job, ci, pg, dxo);
             });
         }
-        let mut total = vec![T::default(); gl];
-        for part in partial.chunks_exact(gl.max(1)) {
-            for (t, p) in total.iter_mut().zip(part) {
-                *t = *t + *p;
-            }
-        }
-        Ok(self.unpad(&total))
+        Ok(self.unpad(&crate::grad::sum_chunks(&partial, gl)))
     }
 }
 

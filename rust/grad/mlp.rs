@@ -4,8 +4,8 @@
 
 use super::dispatch::KernelReal;
 use super::net::{self, BackBufs, Net, Tile};
-use super::tape::{reuse, Tape};
-use super::{check_net, unpad, LayerRef, NetGrads, CHUNK_TILES, TILE};
+use super::tape::Tape;
+use super::{check_net, sum_chunks, unpad, LayerRef, NetGrads, CHUNK_TILES, TILE};
 use crate::error::{Error, Result};
 use crate::pool::{Chunks, Pool};
 use crate::real::Real;
@@ -45,15 +45,7 @@ impl<T: KernelReal> MlpKernel<T> {
         let tl = self.tile_len();
         let mut none = Vec::new();
         let (data, keep): (&mut [T], bool) = match tape {
-            Some(t) => {
-                t.samples = samples;
-                if t.data.capacity() == 0 {
-                    t.data = reuse::<T>(tiles * tl);
-                }
-                t.data.resize(tiles * tl, T::default());
-                t.data.truncate(tiles * tl);
-                (&mut t.data, true)
-            }
+            Some(t) => (t.prepare(samples, tiles * tl), true),
             None => (&mut none, false),
         };
         let outs = (Chunks::new(data, CHUNK_TILES * tl), Chunks::new(y, CHUNK_TILES * TILE * self.d_out));
@@ -90,13 +82,7 @@ impl<T: KernelReal> MlpKernel<T> {
                 T::mlp_backward_chunk(self.simd, &job, ci, pg, d);
             });
         }
-        let mut total = vec![T::default(); gl];
-        for part in partial.chunks_exact(gl) {
-            for (t, p) in total.iter_mut().zip(part) {
-                *t = *t + *p;
-            }
-        }
-        Ok(unpad(&self.net, &total))
+        Ok(unpad(&self.net, &sum_chunks(&partial, gl)))
     }
 }
 

@@ -72,5 +72,17 @@ fn unpad<T: Real>(net: &Net<T>, g: &[T]) -> NetGrads<T> {
 }
 
 
+/// The chunks' weight gradients (`partial`, `len` values each) summed in chunk order: the same bits at any
+/// thread count, since a chunk's share does not depend on which thread ran it.
+pub(crate) fn sum_chunks<T: Real>(partial: &[T], len: usize) -> Vec<T> {
+    let mut total = vec![T::default(); len];
+    for part in partial.chunks_exact(len.max(1)) {
+        for (t, p) in total.iter_mut().zip(part) {
+            *t = *t + *p;
+        }
+    }
+    total
+}
+
 #[cfg(test)]
 mod tests;

@@ -17,6 +17,18 @@ impl<T: KernelReal> Tape<T> {
     pub fn samples(&self) -> usize {
         self.samples
     }
+
+    /// The buffer of a forward pass over `samples` samples, `len` values long: a freed one where there is one.
+    /// Every value is written by the forward pass before anything reads it, so it is not cleared.
+    pub(crate) fn prepare(&mut self, samples: usize, len: usize) -> &mut [T] {
+        self.samples = samples;
+        if self.data.capacity() == 0 {
+            self.data = reuse::<T>(len);
+        }
+        self.data.resize(len, T::default());
+        self.data.truncate(len);
+        &mut self.data
+    }
 }
 
 impl<T: KernelReal> Default for Tape<T> {
@@ -54,7 +66,7 @@ fn free_list() -> &'static std::sync::Mutex<Vec<Box<dyn std::any::Any + Send>>> 
 }
 
 /// A freed tape buffer of T with room for `len` values if there is one, else a new empty one.
-pub(crate) fn reuse<T: 'static>(len: usize) -> Vec<T> {
+fn reuse<T: 'static>(len: usize) -> Vec<T> {
     let mut list = free_list().lock().unwrap_or_else(|p| p.into_inner());
     let pos = list.iter().position(|b| b.downcast_ref::<Vec<T>>().is_some_and(|v| v.capacity() >= len));
     match pos {

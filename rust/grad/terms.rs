@@ -4,8 +4,8 @@
 use super::dispatch::KernelReal;
 use super::head::{self, Lanes, Num, Outs, MMAX, NMAX};
 use super::net::{self, BackBufs, Net, Tile};
-use super::tape::{reuse, Tape};
-use super::{check_net, unpad, LayerRef, NetGrads, CHUNK_TILES, TILE};
+use super::tape::Tape;
+use super::{check_net, sum_chunks, unpad, LayerRef, NetGrads, CHUNK_TILES, TILE};
 use crate::error::{Error, Result};
 use crate::model::JointType;
 use crate::pool::{Chunks, Pool};
@@ -80,18 +80,11 @@ impl<T: KernelReal> TermsKernel<T> {
         let mut none = Vec::new();
         let (data, keep): (&mut [T], bool) = match tape {
             Some(t) => {
-                t.samples = samples;
-                if t.data.capacity() == 0 {
-                    t.data = reuse::<T>(tiles * tl);
-                }
-                // every value is written by the forward pass before anything reads it: no need to clear
-                t.data.resize(tiles * tl, T::default());
-                t.data.truncate(tiles * tl);
                 t.q.clear();
                 t.q.extend_from_slice(q);
                 t.qd.clear();
                 t.qd.extend_from_slice(qd);
-                (&mut t.data, true)
+                (t.prepare(samples, tiles * tl), true)
             }
             None => (&mut none, false),
         };
@@ -134,12 +127,7 @@ impl<T: KernelReal> TermsKernel<T> {
                 T::backward_chunk(self.simd, &job, ci, pg, [q, qd, z]);
             });
         }
-        let mut total = vec![T::default(); gl + gv];
-        for part in partial.chunks_exact(gl + gv) {
-            for (t, p) in total.iter_mut().zip(part) {
-                *t = *t + *p;
-            }
-        }
+        let total = sum_chunks(&partial, gl + gv);
         Ok((unpad(&self.l, &total[..gl]), unpad(&self.v, &total[gl..])))
     }
 }
