@@ -289,6 +289,20 @@ def test_interrupted_sweep_resumes_only_missing_runs(tiny_serial, fake_real, tmp
     assert any("1 to run" in l for l in lines), lines
     a, b = _metrics(out), _metrics(tmp_path / "s")
     assert a == b
+    last = json.loads((tmp_path / "s" / "sweep_clock.json").read_text())["sessions"][-1]
+    assert last["runs_run"] == 1 and last["finished"] and set(last["seconds"]) == {"world", "runs", "reference"}
+
+
+def test_a_killed_invocation_keeps_its_time_up_to_its_last_finished_run(tmp_path):
+    from exolan.report.markdown import _wall_time
+    killed = R.SweepClock(tmp_path, "here")
+    killed.update({"world": 10.0, "runs": 100.0}, 3)           # then the process dies: no finishing update
+    on_disk = json.loads((tmp_path / "sweep_clock.json").read_text())
+    assert on_disk["total"] == 110.0 and not on_disk["sessions"][0]["finished"]
+    clock = R.SweepClock(tmp_path, "here").update({"world": 0.0, "runs": 50.0, "reference": 5.0}, 2, finished=True)
+    assert clock["total"] == 165.0 and [s["runs_run"] for s in clock["sessions"]] == [3, 2]
+    line = _wall_time({"sweep_clock": clock, "seconds": {"world": 0.0, "runs": 50.0}})
+    assert "2.8 min" in line and "2 invocations, 1 interrupted" in line
 
 
 @pytest.fixture(scope="module")
@@ -342,6 +356,12 @@ def test_verdict_needs_a_size_that_matters():
     assert verdict(-0.04, 0.001, None) == "same direction, negligible"
     assert verdict(-0.06, 0.001, None) == "holds"
     assert verdict(float("nan"), 0.01, -0.5) == "n/a"
+    # the seeds are training's replicates: significant over users but not over seeds is not significant
+    # (the converge sweep's multi-step claim, +13.5 % with p 0.016 over users and 0.079 over seeds)
+    assert verdict(+0.135, 0.0156, -0.93, p_seeds=0.079) == "reversed, not significant"
+    assert verdict(-0.32, 0.0156, -0.07, p_seeds=0.0057) == "holds"
+    assert verdict(-0.32, 0.0156, -0.07, p_seeds=0.2) == "same direction, not significant"
+    assert verdict(-0.32, 0.0156, -0.07, p_seeds=float("nan")) == "holds"     # one seed: users alone
 
 
 @pytest.mark.ray

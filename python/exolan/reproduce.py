@@ -108,17 +108,26 @@ def _sample_period(backend, data_dir: Path, results: dict) -> float | None:
     return float(trials[0].dt) if trials else None
 
 
-def sweep_clock(out: Path, seconds: dict[str, float], n_run: int, where: str) -> dict:
-    """Add this invocation's wall times to out/sweep_clock.json and return the totals over every invocation:
-    a resumed sweep still reports what the whole sweep cost (the report prints it)."""
-    path = out / "sweep_clock.json"
-    sessions = json.loads(path.read_text())["sessions"] if path.exists() else []
-    sessions.append({"date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "runs_run": n_run, "where": where,
-                     "seconds": {k: round(v, 1) for k, v in seconds.items()}})
-    total = {k: sum(s["seconds"].get(k, 0.0) for s in sessions) for k in seconds}
-    clock = {"sessions": sessions, "total_seconds": total, "total": sum(total.values())}
-    write_json(path, clock)
-    return clock
+class SweepClock:
+    """This invocation's wall times as one session of out/sweep_clock.json, rewritten after every finished run:
+    a resumed sweep reports what the whole sweep cost, a killed invocation included up to its last finished run
+    (its session stays `"finished": false`; the report counts them)."""
+
+    def __init__(self, out: Path, where: str):
+        self.path = out / "sweep_clock.json"
+        self.sessions = json.loads(self.path.read_text())["sessions"] if self.path.exists() else []
+        self.mine = {"date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "runs_run": 0, "where": where,
+                     "seconds": {}, "finished": False}
+        self.sessions.append(self.mine)
+
+    def update(self, seconds: dict[str, float], n_run: int, finished: bool = False) -> dict:
+        """Record this invocation's seconds so far; return the totals over every invocation."""
+        self.mine.update(runs_run=n_run, finished=finished, seconds={k: round(v, 1) for k, v in seconds.items()})
+        keys = {k for s in self.sessions for k in s["seconds"]}
+        total = {k: sum(s["seconds"].get(k, 0.0) for s in self.sessions) for k in sorted(keys)}
+        clock = {"sessions": self.sessions, "total_seconds": total, "total": sum(total.values())}
+        write_json(self.path, clock)
+        return clock
 
 
 def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers: int | None = None,
@@ -153,14 +162,16 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
                      backend=backend or os.environ.get("EXOLAN_REPRODUCE_BACKEND"), threads=threads,
                      device=device, plot_seed=scale.seeds[0], groups=be.task_groups())
     specs = plan(scale, with_real=real_dir is not None)
+    clock = SweepClock(out, f"{workers} worker(s) x {threads} thread(s), {device}, {cores} core(s)")
     t1 = time.perf_counter()
-    ran = execute(specs, ctx, workers, ray_address, log=log)
+    ran = execute(specs, ctx, workers, ray_address, log=log,
+                  on_run=lambda n: clock.update({"world": t_world, "runs": time.perf_counter() - t1}, n))
     t_runs = time.perf_counter() - t1
     results = {s.run_id: load_result(out, s) for s in specs if _done(out, s, ctx)}
     t2 = time.perf_counter()
     reference = world_reference(out, scale, be, data_dir) if data is None and scale.fd_study else None
-    clock = sweep_clock(out, {"world": t_world, "runs": t_runs, "reference": time.perf_counter() - t2},
-                        len(ran), f"{workers} worker(s) x {threads} thread(s), {device}, {cores} core(s)")
+    clock = clock.update({"world": t_world, "runs": t_runs, "reference": time.perf_counter() - t2}, len(ran),
+                         finished=True)
     missing = [s.run_id for s in specs if s.run_id not in results]
     specs = [s for s in specs if s.run_id in results]
     meta = {"scale": dataclasses.asdict(scale), "data": str(data_dir), "real_data": real_dir,

@@ -92,8 +92,9 @@ def _worker_init(threads: int) -> None:
 
 
 def execute(specs: list[RunSpec], ctx: JobContext, workers: int, ray_address: str | None = None,
-            log=print) -> dict[str, float]:
-    """Run the unfinished jobs; return {run_id: wall seconds} of those run now."""
+            log=print, on_run=None) -> dict[str, float]:
+    """Run the unfinished jobs; return {run_id: wall seconds} of those run now. `on_run(n)` is called after each
+    stored run with the number stored so far."""
     out = Path(ctx.out)
     todo = [s for s in specs if not _done(out, s, ctx)]
     log(f"[reproduce] {len(specs)} runs, {len(specs) - len(todo)} already complete, {len(todo)} to run "
@@ -112,6 +113,8 @@ def execute(specs: list[RunSpec], ctx: JobContext, workers: int, ray_address: st
             return
         _store(out, spec, ctx, res)
         timings[spec.run_id] = res.get("train_seconds", 0.0) + res.get("eval_seconds", 0.0)
+        if on_run is not None:
+            on_run(len(timings))
         log(f"[reproduce] {i}/{len(todo)} {spec.run_id}: train {res['train_seconds']:.1f}s "
             f"eval {res['eval_seconds']:.1f}s (elapsed {time.perf_counter() - t0:.0f}s)")
 

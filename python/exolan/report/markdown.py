@@ -50,7 +50,8 @@ def _grad_norm_table(gn: dict) -> list[str]:
 
 def _claims_table(claims) -> list[str]:
     L = [f"A claim **holds** when our change has the paper's sign, is significant over held-out users "
-         f"(Wilcoxon p < {ALPHA:g}) and is at least {SIZE_FRACTION:.0%} of the paper's relative change "
+         f"(Wilcoxon p < {ALPHA:g}) and, where there are ≥ 2 seeds, over seeds (paired t p < {ALPHA:g}: every user is "
+         f"scored with the same seed's model, so training noise alone can look significant over users) and is at least {SIZE_FRACTION:.0%} of the paper's relative change "
          f"(direction-only claims: at least {DIRECTION_ONLY_SIZE:.0%}); otherwise it is *same direction, negligible*, "
          f"*same direction, not significant* or *reversed*.", "",
          "| claim | paper's change (real data) | ours (seed-mean, pooled over users) | users better | "
@@ -104,7 +105,7 @@ def _section_header(scale: Scale, meta: dict) -> list[str]:
          "Statistics: mean ± std over seeds (sample std). Each claim is tested paired over held-out users "
          "(per-user MSE pooled over the user's samples and averaged over seeds; Wilcoxon signed-rank, "
          "two-sided) and, with ≥ 2 seeds, paired over seeds (t-test on each seed's pooled MSE). A claim "
-         "*holds* when our change has the paper's sign and the user-level p < 0.05. With 7 held-out users "
+         "*holds* when our change has the paper's sign and p < 0.05 over users and over seeds. With 7 held-out users "
          "the smallest attainable Wilcoxon p is 0.016.", ""]
     return L
 
@@ -117,9 +118,11 @@ def _wall_time(meta: dict) -> str:
         return f"Wall time of {now}."
     t = clock["total_seconds"]
     n = len(clock["sessions"])
+    cut = sum(1 for s in clock["sessions"] if not s.get("finished", True))
+    cut_s = f", {cut} interrupted, each counted to its last finished run" if cut else ""
     return (f"**Wall time of the sweep: {clock['total'] / 60:.1f} min** (world {t.get('world', 0):.0f} s, runs "
             f"{t.get('runs', 0):.0f} s, the world's reference rollouts {t.get('reference', 0):.0f} s; "
-            f"{n} invocation{'s' if n > 1 else ''}, `sweep_clock.json`); {now}.")
+            f"{n} invocation{'s' if n > 1 else ''}{cut_s}, `sweep_clock.json`); {now}.")
 
 
 def _section_intention(M: dict, claims: list[dict], figs: dict) -> list[str]:

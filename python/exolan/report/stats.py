@@ -6,8 +6,10 @@ estimate training noise; the users are what the claim generalises over). The tes
 signed-rank test (scipy.stats.wilcoxon, two-sided, exact for small n): per-user MSEs are skewed and
 heteroscedastic across people, so a rank test is safer than a paired t-test; with 7 users its smallest
 attainable p is 1/64 ~ 0.016. Where there are at least two seeds, a paired t-test over seeds (each seed's
-pooled MSE; scipy.stats.ttest_rel) is reported beside it. A claim "holds" when our change has the paper's
-sign, the user-level p < 0.05 and its size is at least a quarter of the paper's relative change (``verdict``).
+pooled MSE; scipy.stats.ttest_rel) is reported beside it and must agree: a claim "holds" when our change has
+the paper's sign, p < 0.05 over users and (with ≥ 2 seeds) over seeds, and its size is at least a quarter of the
+paper's relative change (``verdict``). Every user is scored with the same seed's model, so a change that training
+noise alone can flip is "significant" over users; the seeds are the replicates of training.
 """
 from __future__ import annotations
 
@@ -215,22 +217,26 @@ def paired(a_users: dict, b_users: dict, a_seeds=None, b_seeds=None) -> dict:
     return res
 
 
-ALPHA = 0.05                 # significance over held-out users (two-sided Wilcoxon)
+ALPHA = 0.05                 # significance over held-out users (two-sided Wilcoxon) and over seeds (paired t)
 SIZE_FRACTION = 0.25         # a claim holds only at ≥ a quarter of the paper's relative change ...
 DIRECTION_ONLY_SIZE = 0.05   # ... or ≥ 5 % where the paper gives a direction only
 
 
-def verdict(rel: float | None, p: float, paper_rel: float | None) -> str:
-    """'holds' when the change has the paper's sign, is significant over held-out users (p < ALPHA) and is at
-    least a quarter of the paper's relative change (direction-only claims, paper_rel None: at least 5 %);
-    else 'same direction, negligible' (too small, significant or not), 'same direction, not significant',
-    or 'reversed' (with '(significant)' where p < ALPHA). A sign alone is not a result."""
+def verdict(rel: float | None, p: float, paper_rel: float | None, p_seeds: float | None = None) -> str:
+    """'holds' when the change has the paper's sign, is significant and is at least a quarter of the paper's
+    relative change (direction-only claims, paper_rel None: at least 5 %); else 'same direction, negligible'
+    (too small, significant or not), 'same direction, not significant', or 'reversed' (with '(significant)'
+    where significant). Significant: p < ALPHA over held-out users and, where there are seeds to pair
+    (p_seeds given), over seeds too: users share each seed's model, so a change that training noise alone
+    can flip looks significant over users (docs/RESULTS.md, "Two sweeps"). A sign alone is not a result."""
     if rel is None or not np.isfinite(rel):
         return "n/a"
     if abs(rel) < 1e-12:
         return "no difference"
     direction = -1.0 if paper_rel is None else float(np.sign(paper_rel))   # direction-only claims: lower error
-    significant = np.isfinite(p) and p < ALPHA
+    significant = bool(np.isfinite(p) and p < ALPHA)
+    if p_seeds is not None and np.isfinite(p_seeds):
+        significant = significant and p_seeds < ALPHA
     if np.sign(rel) != direction:
         return "reversed (significant)" if significant else "reversed, not significant"
     needed = DIRECTION_ONLY_SIZE if paper_rel is None else SIZE_FRACTION * abs(paper_rel)
@@ -240,8 +246,8 @@ def verdict(rel: float | None, p: float, paper_rel: float | None) -> str:
 
 
 def _holds(res: dict, paper_rel: float | None) -> str:
-    return verdict(res.get("rel_change"), res.get("p_wilcoxon_users", float("nan")), paper_rel)
-
+    return verdict(res.get("rel_change"), res.get("p_wilcoxon_users", float("nan")), paper_rel,
+                   res.get("p_ttest_seeds"))
 
 
 def _claim(methods, split, a, b, paper_rel, title, unit="per_user"):
