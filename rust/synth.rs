@@ -49,7 +49,8 @@ impl Default for SynthConfig {
     }
 }
 
-struct Rng(u64);
+/// splitmix64: the synthetic models' weights, and the kernels' tests' inputs.
+pub(crate) struct Rng(pub(crate) u64);
 impl Rng {
     fn next(&mut self) -> f64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
@@ -59,7 +60,7 @@ impl Rng {
         z ^= z >> 31;
         (z >> 11) as f64 / (1u64 << 53) as f64
     }
-    fn uniform(&mut self, count: usize, bound: f64) -> Vec<f64> {
+    pub(crate) fn uniform(&mut self, count: usize, bound: f64) -> Vec<f64> {
         (0..count).map(|_| (2.0 * self.next() - 1.0) * bound).collect()
     }
 }

@@ -2,19 +2,9 @@
 //! at any thread count. (The comparison with torch's autograd lives in tests/test_native_terms.py.)
 
 use super::*;
+use crate::synth::Rng;
 use crate::model::JointType;
 use crate::pool::Pool;
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64) / (1u64 << 53) as f64 * 2.0 - 1.0
-    }
-    fn vec(&mut self, n: usize, s: f64) -> Vec<f64> {
-        (0..n).map(|_| s * self.next()).collect()
-    }
-}
 
 struct Setup {
     types: Vec<JointType>,
@@ -28,7 +18,7 @@ fn setup(types: Vec<JointType>, dz: usize, hidden: usize, rng: &mut Rng) -> Setu
     let dphi: usize = types.iter().map(|t| if *t == JointType::Revolute { 2 } else { 1 }).sum();
     let mk = |rng: &mut Rng, out_last: usize| {
         let dims = [dphi + dz, hidden, hidden, out_last];
-        (0..3).map(|i| (rng.vec(dims[i + 1] * dims[i], 0.6), rng.vec(dims[i + 1], 0.3), dims[i + 1], dims[i])).collect::<Vec<_>>()
+        (0..3).map(|i| (rng.uniform(dims[i + 1] * dims[i], 0.6), rng.uniform(dims[i + 1], 0.3), dims[i + 1], dims[i])).collect::<Vec<_>>()
     };
     let l = mk(rng, n * (n + 1) / 2);
     let v = mk(rng, 1);
@@ -64,10 +54,10 @@ fn gradients_match_finite_differences() {
         let s = setup(types, dz, 10, &mut rng);
         let k = kernel(&s);
         let (n, ns) = (k.n(), 5);
-        let q = rng.vec(ns * n, 2.0);
-        let qd = rng.vec(ns * n, 1.5);
-        let z = rng.vec(ns * dz, 1.0);
-        let w = [rng.vec(ns * n * n, 1.0), rng.vec(ns * n * n, 1.0), rng.vec(ns * n, 1.0), rng.vec(ns * n, 1.0)];
+        let q = rng.uniform(ns * n, 2.0);
+        let qd = rng.uniform(ns * n, 1.5);
+        let z = rng.uniform(ns * dz, 1.0);
+        let w = [rng.uniform(ns * n * n, 1.0), rng.uniform(ns * n * n, 1.0), rng.uniform(ns * n, 1.0), rng.uniform(ns * n, 1.0)];
         let mut tape = Tape::new();
         let (mut l, mut h, mut c, mut g) = (vec![0.0; ns * n * n], vec![0.0; ns * n * n], vec![0.0; ns * n], vec![0.0; ns * n]);
         k.forward(&q, &qd, &z, &mut l, &mut h, &mut c, &mut g, Some(&mut tape), &pool).unwrap();
@@ -114,10 +104,10 @@ fn any_thread_count_gives_the_same_bits() {
     let s = setup(vec![JointType::Revolute, JointType::Revolute], 4, 16, &mut rng);
     let k = kernel(&s);
     let ns = 3 * CHUNK_TILES * TILE + 17;
-    let q = rng.vec(ns * 2, 2.0);
-    let qd = rng.vec(ns * 2, 1.0);
-    let z = rng.vec(ns * 4, 1.0);
-    let up: Vec<Vec<f64>> = [4, 4, 2, 2].iter().map(|m| rng.vec(ns * m, 1.0)).collect();
+    let q = rng.uniform(ns * 2, 2.0);
+    let qd = rng.uniform(ns * 2, 1.0);
+    let z = rng.uniform(ns * 4, 1.0);
+    let up: Vec<Vec<f64>> = [4, 4, 2, 2].iter().map(|m| rng.uniform(ns * m, 1.0)).collect();
     let mut results = Vec::new();
     for threads in [1, 2, 3] {
         let pool = Pool::new(threads).unwrap();
@@ -144,9 +134,9 @@ fn speed_f32() {
     let vr: Vec<LayerRef<f32>> = v.iter().map(|(w, b, o, i)| (&w[..], &b[..], *o, *i)).collect();
     let k = TermsKernel::<f32>::new(&s.types, 16, 1e-2, 3.0, &lr, &vr).unwrap();
     let ns = 8192;
-    let q: Vec<f32> = rng.vec(ns * 2, 2.0).iter().map(|x| *x as f32).collect();
-    let qd: Vec<f32> = rng.vec(ns * 2, 1.0).iter().map(|x| *x as f32).collect();
-    let z: Vec<f32> = rng.vec(ns * 16, 1.0).iter().map(|x| *x as f32).collect();
+    let q: Vec<f32> = rng.uniform(ns * 2, 2.0).iter().map(|x| *x as f32).collect();
+    let qd: Vec<f32> = rng.uniform(ns * 2, 1.0).iter().map(|x| *x as f32).collect();
+    let z: Vec<f32> = rng.uniform(ns * 16, 1.0).iter().map(|x| *x as f32).collect();
     let pool = Pool::new(1).unwrap();
     let (mut lo, mut h, mut c, mut g) = (vec![0f32; ns * 4], vec![0f32; ns * 4], vec![0f32; ns * 2], vec![0f32; ns * 2]);
     let mut tape = Tape::new();
@@ -166,10 +156,10 @@ fn mlp_gradients_match_finite_differences_and_threads_agree() {
     let mut rng = Rng(11);
     let dims = [9usize, 20, 20, 3];
     let layers: Vec<(Vec<f64>, Vec<f64>, usize, usize)> =
-        (0..3).map(|i| (rng.vec(dims[i + 1] * dims[i], 0.5), rng.vec(dims[i + 1], 0.3), dims[i + 1], dims[i])).collect();
+        (0..3).map(|i| (rng.uniform(dims[i + 1] * dims[i], 0.5), rng.uniform(dims[i + 1], 0.3), dims[i + 1], dims[i])).collect();
     let ns = 2 * CHUNK_TILES * TILE + 5;
-    let x = rng.vec(ns * 9, 1.5);
-    let w = rng.vec(ns * 3, 1.0);
+    let x = rng.uniform(ns * 9, 1.5);
+    let w = rng.uniform(ns * 3, 1.0);
     let k = MlpKernel::new(&refs(&layers)).unwrap();
     let loss = |k: &MlpKernel<f64>, x: &[f64]| {
         let mut y = vec![0.0; ns * 3];

@@ -2,17 +2,7 @@
 //! itself at any thread count. (The comparison with torch's autograd lives in tests/test_native_tcn.py.)
 
 use super::*;
-
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        ((self.0 >> 11) as f64) / (1u64 << 53) as f64 * 2.0 - 1.0
-    }
-    fn vec(&mut self, n: usize, s: f64) -> Vec<f64> {
-        (0..n).map(|_| s * self.next()).collect()
-    }
-}
+use crate::synth::Rng;
 
 #[derive(Clone)]
 struct Setup {
@@ -27,10 +17,10 @@ fn setup(c_in: usize, hidden: usize, levels: usize, kernel: usize, rng: &mut Rng
     let mut convs = Vec::new();
     for l in 0..levels {
         let cin = if l == 0 { c_in } else { hidden };
-        convs.push((rng.vec(hidden * cin * kernel, 0.6), rng.vec(hidden, 0.4)));
-        convs.push((rng.vec(hidden * hidden * kernel, 0.6), rng.vec(hidden, 0.4)));
+        convs.push((rng.uniform(hidden * cin * kernel, 0.6), rng.uniform(hidden, 0.4)));
+        convs.push((rng.uniform(hidden * hidden * kernel, 0.6), rng.uniform(hidden, 0.4)));
         if cin != hidden {
-            convs.push((rng.vec(hidden * cin, 0.6), rng.vec(hidden, 0.4)));
+            convs.push((rng.uniform(hidden * cin, 0.6), rng.uniform(hidden, 0.4)));
         }
     }
     Setup { c_in, hidden, levels, kernel, convs }
@@ -63,9 +53,9 @@ fn gradients_match_finite_differences() {
         let mut rng = Rng(11);
         let s = setup(c_in, hidden, levels, kernel, &mut rng);
         let k = tcn(&s);
-        let x = rng.vec(batch * t * c_in, 1.5);
+        let x = rng.uniform(batch * t * c_in, 1.5);
         let kp = keep(batch, t);
-        let w = rng.vec(batch * t * hidden, 1.0);
+        let w = rng.uniform(batch * t * hidden, 1.0);
         let mut tape = TcnTape::new();
         let mut z = vec![0.0; w.len()];
         k.forward(&x, &kp, batch, t, &mut z, Some(&mut tape), &pool).unwrap();
@@ -102,9 +92,9 @@ fn any_thread_count_gives_the_same_bits() {
     let k = tcn(&s);
     // 100 positions: 5 sequences per chunk, 4 chunks
     let (batch, t) = (17, 100);
-    let x = rng.vec(batch * t * 7, 1.0);
+    let x = rng.uniform(batch * t * 7, 1.0);
     let kp = keep(batch, t);
-    let gz = rng.vec(batch * t * 16, 1.0);
+    let gz = rng.uniform(batch * t * 16, 1.0);
     let mut results = Vec::new();
     for threads in [1, 2, 3] {
         let pool = Pool::new(threads).unwrap();
@@ -153,9 +143,9 @@ fn speed_f32() {
     let refs: Vec<ConvRef<f32>> = convs.iter().map(|(w, b)| (&w[..], &b[..])).collect();
     let k = Tcn::<f32>::new(7, 16, 5, 2, &refs).unwrap();
     let (batch, t) = (32, 318);
-    let x: Vec<f32> = rng.vec(batch * t * 7, 1.0).iter().map(|v| *v as f32).collect();
+    let x: Vec<f32> = rng.uniform(batch * t * 7, 1.0).iter().map(|v| *v as f32).collect();
     let kp: Vec<f32> = keep(batch, t).iter().map(|v| *v as f32).collect();
-    let gz: Vec<f32> = rng.vec(batch * t * 16, 1.0).iter().map(|v| *v as f32).collect();
+    let gz: Vec<f32> = rng.uniform(batch * t * 16, 1.0).iter().map(|v| *v as f32).collect();
     let threads = std::env::var("THREADS").map_or(1, |v| v.parse().unwrap());
     let pool = Pool::new(threads).unwrap();
     let mut z = vec![0f32; gz.len()];
