@@ -39,9 +39,11 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int, 
     import torch
 
     torch.set_num_threads(threads)
-    try:                                       # a run's threads as `exolan train` gives them (trees that have it)
+    run_threads = None                         # a run's threads as `exolan train` gives them (trees that have it),
+    try:                                       # held to the end: a dropped context manager restores torch's threads
         from exolan.native import cpu_threads
-        cpu_threads(threads).__enter__()
+        run_threads = cpu_threads(threads)
+        run_threads.__enter__()
     except ImportError:
         pass
     from exolan.config import TrainConfig
@@ -90,7 +92,8 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int, 
         n_samples += step(b)
     sync()                                     # a GPU's queued kernels belong to the time
     dt = time.perf_counter() - t0
-    return dict(samples_per_s=n_samples / dt, ms_per_batch=dt / batches * 1e3)
+    return dict(samples_per_s=n_samples / dt, ms_per_batch=dt / batches * 1e3, torch_threads=torch.get_num_threads(),
+                run_threads=None if run_threads is None else threads)
 
 
 def tree_of(rev: str) -> Path:
@@ -179,7 +182,8 @@ def main() -> None:
                     best[key] = max(best.get(key, 0.0), m["samples_per_s"])
                     runs.setdefault(key, []).append(m["samples_per_s"])
                     print(f"[repeat {r + 1}/{args.repeats}] {config:22s} {th} thr  {name:18s} "
-                          f"{m['samples_per_s']:9.0f} samples/s ({m['ms_per_batch']:.0f} ms/batch)", flush=True)
+                          f"{m['samples_per_s']:9.0f} samples/s ({m['ms_per_batch']:.0f} ms/batch; torch's threads "
+                          f"{m.get('torch_threads', '?')})", flush=True)
     print(f"\nbest of {args.repeats}, batch {args.batch_size}, {args.device}, samples/s (higher is better):")
     rows = []
     for config in configs:
