@@ -162,15 +162,15 @@ def reproduce(scale_name: str, out: str | Path, data: str | None = None, workers
                      backend=backend or os.environ.get("EXOLAN_REPRODUCE_BACKEND"), threads=threads,
                      device=device, plot_seed=scale.seeds[0], groups=be.task_groups())
     specs = plan(scale, with_real=real_dir is not None)
-    clock = SweepClock(out, f"{workers} worker(s) x {threads} thread(s), {device}, {cores} core(s)")
+    sweep = SweepClock(out, f"{workers} worker(s) x {threads} thread(s), {device}, {cores} core(s)")
     t1 = time.perf_counter()
     ran = execute(specs, ctx, workers, ray_address, log=log,
-                  on_run=lambda n: clock.update({"world": t_world, "runs": time.perf_counter() - t1}, n))
+                  on_run=lambda n: sweep.update({"world": t_world, "runs": time.perf_counter() - t1}, n))
     t_runs = time.perf_counter() - t1
     results = {s.run_id: load_result(out, s) for s in specs if _done(out, s, ctx)}
     t2 = time.perf_counter()
     reference = world_reference(out, scale, be, data_dir) if data is None and scale.fd_study else None
-    clock = clock.update({"world": t_world, "runs": t_runs, "reference": time.perf_counter() - t2}, len(ran),
+    clock = sweep.update({"world": t_world, "runs": t_runs, "reference": time.perf_counter() - t2}, len(ran),
                          finished=True)
     missing = [s.run_id for s in specs if s.run_id not in results]
     specs = [s for s in specs if s.run_id in results]
