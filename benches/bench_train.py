@@ -92,8 +92,7 @@ def worker(data: str, config: str, threads: int, batches: int, batch_size: int, 
         n_samples += step(b)
     sync()                                     # a GPU's queued kernels belong to the time
     dt = time.perf_counter() - t0
-    return dict(samples_per_s=n_samples / dt, ms_per_batch=dt / batches * 1e3, torch_threads=torch.get_num_threads(),
-                run_threads=None if run_threads is None else threads)
+    return dict(samples_per_s=n_samples / dt, ms_per_batch=dt / batches * 1e3, torch_threads=torch.get_num_threads())
 
 
 def tree_of(rev: str) -> Path:

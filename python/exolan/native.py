@@ -25,6 +25,11 @@ def enabled(function: str = "terms_forward") -> bool:
     return _native is not None and hasattr(_native, function) and os.environ.get("EXOLAN_NATIVE_TERMS", "1") != "0"
 
 
+def as_numpy(t: torch.Tensor):
+    """t's values as a contiguous numpy array (a view where t is already contiguous), for a kernel call."""
+    return t.detach().contiguous().numpy()
+
+
 def threads() -> int:
     """Threads of a kernel call: those of the run (`cpu_threads`), else torch's intra-op thread count."""
     return _threads or torch.get_num_threads()

@@ -16,8 +16,7 @@ from __future__ import annotations
 import torch
 
 from . import native
-from .native import _native
-from .native_terms import _np
+from .native import _native, as_numpy as _np
 
 DTYPES = (torch.float32,)
 

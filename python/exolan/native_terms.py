@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from .native import _native, enabled, threads
+from .native import _native, as_numpy as _np, enabled, threads
 
 DTYPES = (torch.float32,)
 MAX_JOINTS = 3
@@ -29,10 +29,6 @@ def usable(lag, q: torch.Tensor) -> bool:
 
 def _params(lag) -> list[torch.Tensor]:
     return [t for net in (lag.L, lag.V) for layer in net for t in (layer.weight, layer.bias)]
-
-
-def _np(t: torch.Tensor):
-    return t.detach().contiguous().numpy()
 
 
 class _Terms(torch.autograd.Function):

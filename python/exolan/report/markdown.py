@@ -50,8 +50,9 @@ def _grad_norm_table(gn: dict) -> list[str]:
 
 def _claims_table(claims) -> list[str]:
     L = [f"A claim **holds** when our change has the paper's sign, is significant over held-out users "
-         f"(Wilcoxon p < {ALPHA:g}) and, where there are ≥ 2 seeds, over seeds (paired t p < {ALPHA:g}: every user is "
-         f"scored with the same seed's model, so training noise alone can look significant over users) and is at least {SIZE_FRACTION:.0%} of the paper's relative change "
+         f"(Wilcoxon p < {ALPHA:g}) and, where there are ≥ 2 seeds, over seeds (paired t p < {ALPHA:g}: every user "
+         f"is scored with the same seed's model, so training noise alone can look significant over users) and is "
+         f"at least {SIZE_FRACTION:.0%} of the paper's relative change "
          f"(direction-only claims: at least {DIRECTION_ONLY_SIZE:.0%}); otherwise it is *same direction, negligible*, "
          f"*same direction, not significant* or *reversed*.", "",
          "| claim | paper's change (real data) | ours (seed-mean, pooled over users) | users better | "
