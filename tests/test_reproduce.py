@@ -251,6 +251,9 @@ def test_tiny_sweep_writes_a_complete_report(tiny_serial):
     assert set(res["forward_dynamics"]) == {"inverse", "w_fd", "w_fd+w_ms", "w_fd+w_ms (H = 6)"}  # tiny: H 4 and 6
     assert any(c["claim"] == "multi-step loss lowers qd20 MSE (w_fd+w_ms (H = 6) vs w_fd)" for c in res["fd_claims"])
     assert "| **ours** ExoLaN (w_fd, w_ms, H = 6, 170 starts)" in md
+    assert "### Where the multi-step loss acts: q̇_20 MSE per task and joint" in md
+    per_task = res["forward_dynamics"]["w_fd"]["per_task"]
+    assert {d["split"] for d in per_task.values()} == {"seen", "unseen"} and "squat" in per_task
     assert res["task_identification"]["sample_split"]["exolan"]["accuracy"][0] > 0
     assert any(c["claim"].startswith("ExoLaN+LIM vs TCN+LIM") for c in res["intention_claims"])
     assert set(res["real"]) == {"exolan", "mlp-tcn", "tcn"}
@@ -421,6 +424,44 @@ def test_rollout_amplification_separates_integrated_from_compounding_errors():
     compounding = amp(lambda dqd, t: bias + 60.0 * dqd)
     assert 1.0 < compounding[0] < compounding[1] < compounding[2]
     assert compounding[2] > 3.0
+
+
+def test_forward_dynamics_errors_are_located_per_task_and_joint():
+    """A q̈ error planted on one task's knee shows on that task and joint only, and the report's table puts the
+    multi-step loss' change where it happened: how a reader sees where the multi-step claim fails."""
+    from exolan import report
+    from exolan.report.markdown import _fd_where_table
+
+    scale = R.SCALES["tiny"]
+    def integrated(tr):                                # q, q̇ exactly what semi-implicit Euler makes of q̈
+        qd = tr.qd[0] + np.vstack([np.zeros((1, 2)), np.cumsum(tr.dt * tr.qdd[:-1], axis=0)])
+        q = tr.q[0] + np.vstack([np.zeros((1, 2)), np.cumsum(tr.dt * qd[1:], axis=0)])
+        return dataclasses.replace(tr, q=q, qd=qd, valid=np.ones(len(tr.q), bool))
+
+    walk, squat = (integrated(tr) for tr in fake_world(users=1, tasks=("walk", "squat"), T=200)[::2])
+    items = [("seen", walk, None), ("unseen", squat, None)]
+
+    def stats(knee_error):
+        def forward(q, qd, tau, z, fv, cx, owner, t):
+            out = np.where(owner[:, None] == 0, walk.qdd[t], squat.qdd[t])
+            return out + np.where(owner == 1, knee_error, 0.0)[:, None] * np.array([0.0, 1.0])
+        rows = R.rollout_metrics(forward, items, scale)
+        return report.fd_stats([{"fd_rows": rows, "torque_rows": []}], scale.horizons, rows[0]["dt"])
+
+    a, b = stats(2.0), stats(1.0)
+    h = scale.horizons[-1]
+    assert a["per_task"]["walk"]["split"] == "seen" and a["per_task"]["squat"]["split"] == "unseen"
+    assert a["per_task"]["walk"][f"qd{h}"] < 1e-20
+    hip, knee = a["per_task"]["squat"][f"qd{h}_joints"]
+    assert hip < 1e-20 < knee
+    assert a["per_task"]["squat"]["qdd"] == pytest.approx(2.0, rel=1e-9)          # (0 + 2²) / 2 joints
+    assert a["per_joint"]["qdd"][0] < 1e-20 < a["per_joint"]["qdd"][1]
+    assert np.mean(a["per_joint"][f"qd{h}"]) == pytest.approx(a["mean_std"][f"qd{h}"][0], rel=1e-9)
+    table = "\n".join(_fd_where_table({"w_fd": a, "w_fd+w_ms": b}, h))
+    squat_row = next(line for line in table.splitlines() if line.startswith("| squat |"))
+    change = squat_row.split(" | ")[5]
+    assert change.startswith("-75.0% (") and change.endswith(" / -75.0%)")   # half the error: a quarter of the MSE
+    assert squat_row.endswith("| — | — |")                                   # no floor given
 
 
 def test_default_workers_is_one_per_core_within_free_memory(monkeypatch):

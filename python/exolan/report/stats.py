@@ -171,13 +171,56 @@ def fd_stats(runs: list[dict], horizons, dt: float | None = None) -> dict:
                 d[f"qd{h}"].append(_pooled_h(rr, h, "sse_qd"))
     return {"mean_std": {c: _ms(v) for c, v in per_seed.items() if c in FD_COLS or v},
             "per_seed": per_seed, "diverged_fraction": {h: _ms(v) for h, v in diverged.items()},
-            "per_user": {u: {c: float(np.mean(v)) for c, v in d.items() if v} for u, d in users.items()}}
+            "per_user": {u: {c: float(np.mean(v)) for c, v in d.items() if v} for u, d in users.items()},
+            **_fd_where(runs, horizons)}
+
+
+def _fd_where(runs: list[dict], horizons) -> dict:
+    """Where a forward-dynamics error sits: q̈ and q̇_h MSE per task (with its split) and per joint, each the
+    seed mean of the seeds' pooled MSEs; per task also per joint."""
+    tasks: dict[str, dict[str, list]] = {}
+    split_of: dict[str, str] = {}
+    joints: dict[str, list] = {}
+    for r in runs:
+        rows = r.get("fd_rows", [])
+        if not rows:
+            continue
+        cols = {"qdd": lambda rr: _pooled_joints(rr, "qdd")}
+        cols.update({f"qd{h}": (lambda rr, h=h: _pooled_h_joints(rr, h, "sse_qd")) for h in horizons})
+        for c, f in cols.items():
+            joints.setdefault(c, []).append(f(rows))
+        for t, rr in _by(rows, lambda x: x["task"]).items():
+            split_of[t] = rr[0]["split"]
+            d = tasks.setdefault(t, {})
+            for c, f in cols.items():
+                d.setdefault(c, []).append(f(rr))
+    with np.errstate(invalid="ignore"):
+        per_joint = {c: [float(x) for x in np.mean(v, axis=0)] for c, v in joints.items()}
+        per_task = {t: {"split": split_of[t],
+                        **{c: float(np.mean(np.mean(v, axis=1))) for c, v in d.items()},
+                        **{f"{c}_joints": [float(x) for x in np.mean(v, axis=0)] for c, v in d.items()}}
+                    for t, d in sorted(tasks.items())}
+    return {"per_joint": per_joint, "per_task": per_task}
 
 
 def _pooled(rows, what) -> float:
     n = sum(x["n_" + what] for x in rows)
     k = len(rows[0]["sse_" + what])
     return float(sum(sum(x["sse_" + what]) for x in rows) / (n * k)) if n else float("nan")
+
+
+def _pooled_joints(rows, what) -> list[float]:
+    n = sum(x["n_" + what] for x in rows)
+    k = len(rows[0]["sse_" + what])
+    return [float(sum(x["sse_" + what][j] for x in rows) / n) if n else float("nan") for j in range(k)]
+
+
+def _pooled_h_joints(rows, h, key) -> list[float]:
+    hs = [x["horizons"][str(h)] for x in rows]
+    n = sum(x["n"] for x in hs)
+    k = len(hs[0][key])
+    with np.errstate(invalid="ignore", over="ignore"):
+        return [float(sum(x[key][j] for x in hs) / n) if n else float("nan") for j in range(k)]
 
 
 def _pooled_h(rows, h, key) -> float:
