@@ -199,6 +199,10 @@ def _evidence_lines(f: dict) -> list[str]:
                    + (f" and the term of the subjects whose post-hoc θ clears alone by {_fmt(over.get('gain'), 3)} "
                       f"CI {_fmt(over.get('ci'), 3)} (both fitted {over.get('fitted', 'warm start')})" if over else ""))
     nt = f.get("subject_form_not_taken") or {}
+    if nt.get("refused"):
+        out.append(f"  - one term for every subject: the post-hoc θ by subject ({by_subject(nt)}) differ, but "
+                   f"{', '.join(nt['unphysical_subjects'])} as clearly on the side no physical size takes: the "
+                   "subjects' spread is something else the term's column carries")
     if nt.get("subjects"):
         th = by_subject(nt)
         adv = nt.get("advantage_over_shared") or {}

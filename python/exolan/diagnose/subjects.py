@@ -33,7 +33,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
     so it only proposes the form: `run` takes it only where the gated term, refitted, beats one shared term on
     held-out data beyond the refit noise (a shared effect that the base absorbed in some subjects more than in
     others gives the same post-hoc picture), and the gated term must then pass every rule like any other.
-    Returns None for a pooled term (every subject, or data with one subject).
+    Returns None for a pooled term (every subject, or data with one subject), and the record with `refused` where
+    a subject's θ is as clearly unphysical (`carriers`).
     """
     users = sorted({m["subject"] for m in flat.trial_meta})
     if len(users) < 2 or all(m["subject"] == m["name"] for m in flat.trial_meta):
@@ -60,6 +61,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
             return None
         th[u], se[u], _ = hac_step(a, r, len(rw))
     on, out = carriers(effect, users, np.array([th[u] for u in users]), np.array([se[u] for u in users]))
+    if out["unphysical_subjects"]:
+        return dict(out, refused=True)          # no form; the record says why (`take_form` logs it)
     if not on:
         return None
     if len(on) < len(users):    # a switch: the term on these subjects' trials only
@@ -74,14 +77,20 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
 def carriers(effect: str, users: list, th: np.ndarray, se: np.ndarray) -> tuple[list, dict]:
     """The subjects that carry an effect by their own θ (with SEs): where the subjects differ (Cochran's Q,
     p < 0.05), those whose θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
-    subjects); none where they do not differ. And the record of the test (θ by subject, Q, the z bound)."""
+    subjects); none where they do not differ, and none where a subject's θ clears the same bound on the side no
+    physical size can take (a negative stiffness, damping, delay): then the subjects' spread is something else the
+    column carries (a misfit of the base, or another joint's term sized wrong in one subject and leaking through
+    the leg's coupling), of which the positive side is as much a part as the negative one. And the record of the
+    test (θ by subject, Q, the z bound, the contradicting subjects)."""
     Q, p_het = cochran_q(th, se)
     z_crit = float(scipy_stats.norm.ppf(1 - 0.025 / len(users)))
     z = th / se
-    on = [u for k, u in enumerate(users) if (z[k] if LIBRARY[effect].positive else abs(z[k])) > z_crit]
+    positive = LIBRARY[effect].positive
+    on = [u for k, u in enumerate(users) if (z[k] if positive else abs(z[k])) > z_crit] if p_het < 0.05 else []
+    against = [u for k, u in enumerate(users) if positive and z[k] < -z_crit] if on else []
     rec = dict(theta_by_subject={u: dict(theta=float(th[k]), se=float(se[k])) for k, u in enumerate(users)},
-               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit)
-    return (on if p_het < 0.05 else []), rec
+               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit, unphysical_subjects=against)
+    return ([] if against else on), rec
 
 
 def gated(init: dict, form: dict | None, effect: str, j: int) -> dict:
@@ -199,6 +208,12 @@ def take_form(ss, entry, effect: str, j: int, sc: dict, ext, e_user, e) -> tuple
         return ext, e_user, e
     name = ss.flat.joints[j]
     post = ", ".join(f"{u} {v['theta']:.3g} ± {v['se']:.2g}" for u, v in form["theta_by_subject"].items())
+    if form.get("refused"):
+        entry.subject_form_not_taken = form
+        ss.log(f"{effect:18s} {name:9s} kept shared: post-hoc θ by subject {post}; "
+               f"{', '.join(form['unphysical_subjects'])} as clearly on the unphysical side, so the subjects' spread "
+               "is not this term's")
+        return ext, e_user, e
     tried, kinds = _try(ss, entry, effect, j, sc, form, e_user, e)
     take = [k for k in kinds if tried[k]["beats"]]
     if len(take) == 2:
