@@ -272,8 +272,8 @@ def _fd_where_table(fd: dict, h: int) -> list[str]:
     L = ["", f"### Where the multi-step loss acts: q̇_{h} MSE per task and joint", "",
          f"Held-out users, seed means; change = w_fd + w_ms against w_fd (negative = the multi-step loss "
          f"helps), total then hip / knee; *floor*: the world's true leg fed the true pelvis motion and ground force "
-         f"with the recorded τ (a model that sees only the recordings can be above it). Tasks by split, then by "
-         f"w_fd's error.", "",
+         f"with the recorded τ. A learned model can sit below it (it learns what the recorded torque gets wrong) or "
+         f"above it (it does not see the unrecorded inputs). Tasks by split, then by w_fd's error.", "",
          f"| task | split | w_fd q̈ | w_fd q̇_{h} | w_fd + w_ms q̇_{h} | change (hip / knee) | floor q̇_{h} | "
          "w_fd / floor |", "|---|---|---|---|---|---|---|---|"]
     tasks = sorted(set(a["per_task"]) & set(b["per_task"]),
