@@ -201,8 +201,8 @@ def _evidence_lines(f: dict) -> list[str]:
     nt = f.get("subject_form_not_taken") or {}
     if nt.get("refused"):
         out.append(f"  - one term for every subject: the post-hoc θ by subject ({by_subject(nt)}) differ, but "
-                   f"{', '.join(nt['unphysical_subjects'])} as clearly on the side no physical size takes: the "
-                   "subjects' spread is something else the term's column carries")
+                   f"{', '.join(nt['unphysical_subjects'])} as clearly on the side no physical size takes, and none "
+                   "stands out from its mirror: the subjects' spread is something else the term's column carries")
     if nt.get("subjects"):
         th = by_subject(nt)
         adv = nt.get("advantage_over_shared") or {}

@@ -61,7 +61,7 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
             return None
         th[u], se[u], _ = hac_step(a, r, len(rw))
     on, out = carriers(effect, users, np.array([th[u] for u in users]), np.array([se[u] for u in users]))
-    if out["unphysical_subjects"]:
+    if not on and out["unphysical_subjects"]:
         return dict(out, refused=True)          # no form; the record says why (`take_form` logs it)
     if not on:
         return None
@@ -77,20 +77,26 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
 def carriers(effect: str, users: list, th: np.ndarray, se: np.ndarray) -> tuple[list, dict]:
     """The subjects that carry an effect by their own θ (with SEs): where the subjects differ (Cochran's Q,
     p < 0.05), those whose θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
-    subjects); none where they do not differ, and none where a subject's θ clears the same bound on the side no
-    physical size can take (a negative stiffness, damping, delay): then the subjects' spread is something else the
-    column carries (a misfit of the base, or another joint's term sized wrong in one subject and leaking through
-    the leg's coupling), of which the positive side is as much a part as the negative one. And the record of the
-    test (θ by subject, Q, the z bound, the contradicting subjects)."""
+    subjects); none where they do not differ. And the record of the test (θ by subject, Q, the z bound).
+
+    A subject whose θ clears the same bound on the side no physical size takes (a negative damping, stiffness,
+    delay) shows how far the column's misfit reaches: what the base or another joint's wrongly sized term leaves
+    in one subject's residual can sit on either side of 0 (seed 66 of the slow suite: a hip "strap" of +1.3e-4 in
+    S01 and −1.1e-4 in S02, both the knee strap's leak). A carrier must then also clear the bound against the
+    mirror of the most unphysical θ, (θ_u − |θ_m|) / √(SE_u² + SE_m²) (`unphysical_subjects` names them)."""
     Q, p_het = cochran_q(th, se)
     z_crit = float(scipy_stats.norm.ppf(1 - 0.025 / len(users)))
     z = th / se
     positive = LIBRARY[effect].positive
-    on = [u for k, u in enumerate(users) if (z[k] if positive else abs(z[k])) > z_crit] if p_het < 0.05 else []
-    against = [u for k, u in enumerate(users) if positive and z[k] < -z_crit] if on else []
+    on = [k for k in range(len(users)) if (z[k] if positive else abs(z[k])) > z_crit] if p_het < 0.05 else []
+    against = [k for k in range(len(users)) if positive and z[k] < -z_crit] if on else []
+    if against:
+        m = max(against, key=lambda k: -th[k])
+        on = [k for k in on if (th[k] + th[m]) / math.hypot(se[k], se[m]) > z_crit]
     rec = dict(theta_by_subject={u: dict(theta=float(th[k]), se=float(se[k])) for k, u in enumerate(users)},
-               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit, unphysical_subjects=against)
-    return ([] if against else on), rec
+               heterogeneity=dict(Q=Q, df=len(users) - 1, p=p_het), z_crit=z_crit,
+               unphysical_subjects=[users[k] for k in against])
+    return [users[k] for k in on], rec
 
 
 def gated(init: dict, form: dict | None, effect: str, j: int) -> dict:
@@ -211,8 +217,8 @@ def take_form(ss, entry, effect: str, j: int, sc: dict, ext, e_user, e) -> tuple
     if form.get("refused"):
         entry.subject_form_not_taken = form
         ss.log(f"{effect:18s} {name:9s} kept shared: post-hoc θ by subject {post}; "
-               f"{', '.join(form['unphysical_subjects'])} as clearly on the unphysical side, so the subjects' spread "
-               "is not this term's")
+               f"none stands out from the mirror of {', '.join(form['unphysical_subjects'])}'s, as clearly on the "
+               "unphysical side: the subjects' spread is not this term's")
         return ext, e_user, e
     tried, kinds = _try(ss, entry, effect, j, sc, form, e_user, e)
     take = [k for k in kinds if tried[k]["beats"]]
