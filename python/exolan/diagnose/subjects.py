@@ -61,10 +61,8 @@ def subject_form(model, flat: Flat, effect: str, j: int, sc: dict, predict=predi
             return None
         th[u], se[u], _ = hac_step(a, r, len(rw))
     on, out = carriers(effect, users, np.array([th[u] for u in users]), np.array([se[u] for u in users]))
-    if not on and out["unphysical_subjects"]:
-        return dict(out, refused=True)          # no form; the record says why (`take_form` logs it)
-    if not on:
-        return None
+    if not on:          # no form; where an unphysical subject refused it, the record says why (`take_form` logs it)
+        return dict(out, refused=True) if out["unphysical_subjects"] else None
     if len(on) < len(users):    # a switch: the term on these subjects' trials only
         trial_on = np.array([flat.trial_meta[i]["subject"] in on for i in range(len(flat.trial_meta))], dtype=float)
         out.update(subjects=on, trials=trial_on)

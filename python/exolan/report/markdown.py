@@ -281,9 +281,9 @@ def _fd_where_table(fd: dict, h: int) -> list[str]:
 
     def row(name, split, A, B, F):
         hk = " / ".join(_pct(_rel(x, y)) for x, y in zip(B[f"{c}_joints"], A[f"{c}_joints"]))
-        f = F[c] if F else float("nan")
+        floor_cells = f"{_f(F[c])} | {_f(A[c] / F[c])}" if F else "— | —"
         return (f"| {name} | {split} | {_f(A['qdd'])} | {_f(A[c])} | {_f(B[c])} | {_pct(_rel(B[c], A[c]))} ({hk}) | "
-                f"{_f(f) if F else '—'} | {_f(A[c] / f) if F else '—'} |")
+                f"{floor_cells} |")
 
     for t in tasks:
         L.append(row(t, a["per_task"][t]["split"], a["per_task"][t], b["per_task"][t], floor.get(t)))

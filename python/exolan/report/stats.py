@@ -181,12 +181,12 @@ def _fd_where(runs: list[dict], horizons) -> dict:
     tasks: dict[str, dict[str, list]] = {}
     split_of: dict[str, str] = {}
     joints: dict[str, list] = {}
+    cols = {"qdd": lambda rr: _pooled_joints(rr, "qdd")}
+    cols.update({f"qd{h}": (lambda rr, h=h: _pooled_h_joints(rr, h, "sse_qd")) for h in horizons})
     for r in runs:
         rows = r.get("fd_rows", [])
         if not rows:
             continue
-        cols = {"qdd": lambda rr: _pooled_joints(rr, "qdd")}
-        cols.update({f"qd{h}": (lambda rr, h=h: _pooled_h_joints(rr, h, "sse_qd")) for h in horizons})
         for c, f in cols.items():
             joints.setdefault(c, []).append(f(rows))
         for t, rr in _by(rows, lambda x: x["task"]).items():
@@ -209,18 +209,19 @@ def _pooled(rows, what) -> float:
     return float(sum(sum(x["sse_" + what]) for x in rows) / (n * k)) if n else float("nan")
 
 
+def _per_joint(n: int, sses: list) -> list[float]:
+    """Each joint's MSE from the rows' per-joint squared-error sums over n samples (nan without samples)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return [float(sum(s[j] for s in sses) / n) if n else float("nan") for j in range(len(sses[0]))]
+
+
 def _pooled_joints(rows, what) -> list[float]:
-    n = sum(x["n_" + what] for x in rows)
-    k = len(rows[0]["sse_" + what])
-    return [float(sum(x["sse_" + what][j] for x in rows) / n) if n else float("nan") for j in range(k)]
+    return _per_joint(sum(x["n_" + what] for x in rows), [x["sse_" + what] for x in rows])
 
 
 def _pooled_h_joints(rows, h, key) -> list[float]:
     hs = [x["horizons"][str(h)] for x in rows]
-    n = sum(x["n"] for x in hs)
-    k = len(hs[0][key])
-    with np.errstate(invalid="ignore", over="ignore"):
-        return [float(sum(x[key][j] for x in hs) / n) if n else float("nan") for j in range(k)]
+    return _per_joint(sum(x["n"] for x in hs), [x[key] for x in hs])
 
 
 def _pooled_h(rows, h, key) -> float:
