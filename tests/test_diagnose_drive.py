@@ -340,6 +340,46 @@ def test_physics_first_finds_and_sizes_a_term_per_subject_where_the_subjects_dif
             assert f["subjects"] == ["S2"] and abs(f["estimate"] / v[1] - 1) <= 0.10, msg
 
 
+def test_physics_first_keeps_a_term_shared_and_says_why_where_an_unphysical_subject_refuses_its_form():
+    """Physics first's split joint fit (a stub `prob`, the θ by subject given) with S1's damping positive and S2's as
+    clearly negative: no subject stands out from S2's mirror, so the term stays shared, and the refusal is kept
+    (`PhysicsResult.forms_refused`), logged, and reported on the accepted entry as the learned path reports its own."""
+    from types import SimpleNamespace
+
+    from exolan.diagnose import physics_subjects
+    from exolan.diagnose.report import _evidence_lines
+
+    flat = prepare([_drive_trial(u, 11 + k, viscous=200.0, coulomb=20.0, mass=95.0, offset=-3.0)
+                    for k, u in enumerate(("S1", "S2"))])
+
+    class Prob:     # the joint fit with the damping split by subject: θ and HAC SE given
+        split: dict = {}
+
+        def __init__(self, th):
+            self.th = np.array(th)
+
+        def fit(self, terms, intervals=False):
+            return SimpleNamespace(terms=list(terms))
+
+        def fit_split(self, f, effect, masks):
+            return self.th[:len(masks)], np.full(len(masks), 0.1), f
+
+    users, row_user = flat.user_index()
+    refused = physics_subjects.form_of(Prob([2.0, -1.9]), None, "viscous_damping", users, row_user, flat, 100)
+    assert refused["refused"] and refused["unphysical_subjects"] == ["S2"], refused
+    assert physics_subjects.form_of(Prob([2.0, 2.0]), None, "viscous_damping", users, row_user, flat, 100) is None
+
+    said = []
+    res = SimpleNamespace(accepted=[("viscous_damping", 0)], _probs={0: Prob([2.0, -1.9])},
+                          _fits={0: SimpleNamespace(terms=["viscous_damping"])}, forms={}, forms_refused={})
+    physics_subjects.take(res, flat, n_boot=100, log=said.append)
+    assert res.forms == {} and list(res.forms_refused) == [("viscous_damping", 0)], res
+    assert len(said) == 1 and "kept shared" in said[0] and "S2" in said[0], said
+    lines = _evidence_lines(dict(subject_form_not_taken=res.forms_refused[("viscous_damping", 0)]))
+    assert any("one term for every subject" in x and "joint fit with the term split by subject" in x
+               and "S2 as clearly on the side no physical size takes" in x for x in lines), lines
+
+
 def test_a_physics_first_finding_with_own_sizes_per_subject_is_reported_and_exported_per_subject(tmp_path):
     """The whole diagnosis on two drives whose viscous frictions differ (150 and 300 N s/m): physics first decides,
     the finding carries every subject's own size (within 10 %), the report says so, and each user's engine file

@@ -71,6 +71,7 @@ class PhysicsResult:
     term_gain: dict = field(default_factory=dict)         # (effect, j) -> held-out gain of the term (final model)
     term_rows: dict = field(default_factory=dict)         # (effect, j) -> that gain per held row of the flat
     forms: dict = field(default_factory=dict)             # (effect, j) -> its subject form (`physics_subjects`)
+    forms_refused: dict = field(default_factory=dict)     # (effect, j) -> θ by subject where an unphysical one refused it
     rivalries: list = field(default_factory=list)         # (accepted term, its rival, j): rule 4's ambiguous pairs
     seconds: float = 0.0
     cutoff_hz: float = 0.0
@@ -364,7 +365,7 @@ def reset(res: PhysicsResult) -> None:
     it no longer decides in Holm's step-down (they would loosen every later threshold)."""
     res.accepted, res.estimates, res.tests, res.status = [], {}, [], {}
     res.base, res.heldout, res.cross, res.term_gain, res.term_rows, res.forms = {}, {}, {}, {}, {}, {}
-    res.learned_check, res.rivalries = {}, []
+    res.learned_check, res.rivalries, res.forms_refused = {}, [], {}
     res.e_held, res.held_rows = None, None
     res._fits = dict(res._base_fits)
     for prob in getattr(res, "_probs", {}).values():

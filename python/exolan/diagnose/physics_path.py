@@ -152,6 +152,8 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
                     e.update(**evidence(phys, s, key, groups, kind, subj))
                     if key in phys.forms and e["status"] == "accepted":
                         with_form(e, phys.forms[key])
+                    elif key in phys.forms_refused and e["status"] == "accepted":
+                        e.subject_form_not_taken = dict(phys.forms_refused[key])
                 if key in phys.cross:
                     e["cross_check"] = phys.cross[key].to_json()
             else:

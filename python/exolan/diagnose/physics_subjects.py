@@ -32,17 +32,18 @@ def _ci(effect: str, th: float, se: float) -> tuple[float, list]:
 
 def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, row_user: np.ndarray, flat,
             n_boot: int) -> dict | None:
-    """The subject form of the accepted linear term `effect` in the joint fit `f` (module docstring), or None.
-    `users`, `row_user`: `Flat.user_index`."""
+    """The subject form of the accepted linear term `effect` in the joint fit `f` (module docstring), or None; the
+    record with `refused` where a subject's θ is as clearly unphysical (`carriers`). `users`, `row_user`:
+    `Flat.user_index`."""
     masks = [(row_user == k).astype(float) for k in range(len(users))]
     th, se, split = prob.fit_split(f, effect, masks)
     if not np.all(np.isfinite(se) & (se > 0)):
         return None
     on_users, out = carriers(effect, users, th, se)
-    if not on_users:
-        return None
-    on = [users.index(u) for u in on_users]
     out["method"] = "the joint fit with the term split by subject (weighted LS, HAC SE)"
+    if not on_users:    # where an unphysical subject refused every carrier, the record says why (`take` keeps it)
+        return dict(out, refused=True) if out["unphysical_subjects"] else None
+    on = [users.index(u) for u in on_users]
     trial_user = np.array([users.index(m["subject"]) for m in flat.trial_meta], dtype=np.int64)
     if len(on) < len(users):        # a switch: the term on these subjects' trials only, one θ
         mask = np.isin(row_user, on).astype(float)
@@ -85,7 +86,14 @@ def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -
         shared = prob.fit(res._fits[j].terms, intervals=False)
         for e in [x for x in res._fits[j].terms if not ident.TERMS[x].fixed]:   # a delay's size is its ν
             form = form_of(prob, shared, e, users, row_user, flat, n_boot)
-            if form is not None:
+            if form is not None and form.get("refused"):
+                res.forms_refused[(e, j)] = form
+                if log:
+                    log(f"physics: {e} on {flat.joints[j]} kept shared: θ by subject " + ", ".join(
+                        f"{u} {v['theta']:.3g} ± {v['se']:.2g}" for u, v in form["theta_by_subject"].items())
+                        + f"; none stands out from the mirror of {', '.join(form['unphysical_subjects'])}'s, as "
+                        "clearly on the unphysical side: the subjects' spread is not this term's")
+            elif form is not None:
                 forms[e] = form
         if not forms:
             continue

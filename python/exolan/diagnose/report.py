@@ -200,7 +200,8 @@ def _evidence_lines(f: dict) -> list[str]:
                       f"CI {_fmt(over.get('ci'), 3)} (both fitted {over.get('fitted', 'warm start')})" if over else ""))
     nt = f.get("subject_form_not_taken") or {}
     if nt.get("refused"):
-        out.append(f"  - one term for every subject: the post-hoc θ by subject ({by_subject(nt)}) differ, but "
+        said = f"θ by subject from {nt['method']}" if nt.get("method") else "post-hoc θ by subject"
+        out.append(f"  - one term for every subject: the {said} ({by_subject(nt)}) differ, but "
                    f"{', '.join(nt['unphysical_subjects'])} as clearly on the side no physical size takes, and none "
                    "stands out from its mirror: the subjects' spread is something else the term's column carries")
     if nt.get("subjects"):
