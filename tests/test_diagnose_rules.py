@@ -100,6 +100,46 @@ def test_task_invariance_parameter_path_accepts_agreeing_tasks_and_rejects_disag
     assert res["hurt"] == []
 
 
+def test_task_invariance_parameter_path_asks_whether_a_new_task_would_show_the_effect_not_for_exact_agreement():
+    """A knee delay of 30 ms fitted from scratch in six tasks (the estimates and HAC SEs of a 4-user world,
+    docs/DIAGNOSIS.md, "Rule 5 asks for a new task"): 26-35 ms, Cochran's Q p 0.03, since with this much data
+    the base's bias differs between tasks beyond the SEs. The random-effects prediction interval for a new
+    task lies well above 0, so the parameter path passes. Estimates that scatter around 0 (a misfit's shape)
+    fail, however precise; and with two tasks, where no spread between tasks can be estimated, Q decides."""
+    groups = np.repeat(np.array(["ball_toss", "jump", "run", "sit_to_stand", "squat", "walk"]), 1500)
+    rng = np.random.default_rng(3)
+    d = np.where(np.isin(groups, ["run", "squat"]), 2e-4, 2e-5) + 3e-3 * rng.standard_normal(groups.size)
+    s = Settings(n_boot=200)
+    assert not invariance_rule(d, groups, "task", s)["passes"]          # the gain path alone fails
+    theta = dict(ball_toss=0.03502, jump=0.02962, run=0.02858, sit_to_stand=0.02604, squat=0.03311, walk=0.03483,
+                 rest=0.03027)
+    se = dict(ball_toss=0.00995, jump=0.00082, run=0.00058, sit_to_stand=0.00389, squat=0.00381, walk=0.0019,
+              rest=0.00092)
+    res = invariance_rule(d, groups, "task", s, by_group=_by_group(theta, se), positive=True)
+    assert res["heterogeneity"]["p"] < 0.05                              # exact agreement is rejected ...
+    assert res["new_group"]["prediction"][0] > 0.02 and res["consistent"] and res["passes"], res  # ... a new task shows it
+    around_0 = dict(theta, jump=-0.012, run=0.004, walk=-0.006, squat=0.02)
+    res = invariance_rule(d, groups, "task", s, by_group=_by_group(around_0, se), positive=True)
+    assert res["new_group"]["prediction"][0] < 0 and not res["consistent"] and not res["passes"], res
+    assert "holds no effect" in invariance_reason(res)
+    two = np.where(np.isin(groups, ["ball_toss", "jump", "run"]), "a", "b")
+    res = invariance_rule(d, two, "task", s, by_group=_by_group(dict(a=0.03, b=0.02, rest=0.03),
+                                                                dict(a=0.001, b=0.001, rest=0.001)), positive=True)
+    assert res["new_group"]["consistent"] is None and res["heterogeneity"]["p"] < 0.05 and not res["consistent"]
+
+
+def test_the_users_error_grows_only_beyond_the_spread_of_the_seeds():
+    """Rule 1's second condition in a paired look over seeds: the user's paired gains by seed scatter far more
+    than the decision's (3.6e-3, −2.3e-3, −6.0e-3 measured beside decision gains of 2-4e-4), so one seed's sign
+    is noise; the error grows only where the seeds' mean is below 0 beyond their spread (one-sided, α)."""
+    from exolan.diagnose.rules import user_grows
+
+    assert not user_grows([-1.8e-5, 3.6e-3, -2.3e-3, -6.0e-3, 1.1e-3], 0.05)["grows"]
+    assert user_grows([-1.0e-4, -1.2e-4, -0.9e-4, -1.1e-4, -1.3e-4], 0.05)["grows"]
+    assert not user_grows([2e-5, 1e-5, 3e-5], 0.05)["grows"]
+    assert user_grows([-1e-6], 0.05)["grows"] and not user_grows([1e-6], 0.05)["grows"]    # one seed: its sign
+
+
 def test_noise_floor_rule_keeps_the_gains_skew_and_adds_the_refit_noise():
     """Rule 2 is the 2.5 % quantile of the gain's bootstrap replicates plus the refit noise: a right-skewed gain
     (one stretch of badly fitted data carries most of it) whose percentile CI is above 0 passes where the

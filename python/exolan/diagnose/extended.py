@@ -70,7 +70,7 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
     if pr is not None:      # the more powerful look at the same fit, made already (the rescue)
         out.update(confirmed=pr["confirmed"], confirmation=by_seeds(pr))
         tried.append(gci(by_seeds(pr)) + f" from scratch paired over {pr['seeds']} seeds" + (
-            "" if pr["confirmed"] else ": " + (", ".join(paired_failures(paired_record(pr), pr["user_gain"])) or "fails")))
+            "" if pr["confirmed"] else ": " + (", ".join(paired_failures(paired_record(pr))) or "fails")))
     if not out["confirmed"] and two:
         held_at = ss.tools.around_estimates(ss.base, model, ss.flat, s, effs)
         u_h, d_h = ss.errors(held_at)
@@ -117,7 +117,7 @@ def _from_scratch_look(ss, out: dict, key: tuple, alpha: float, errors: tuple, j
         out.update(confirmed=True, confirmation=by_seeds(pr))
     elif pr["looked"]:
         tried.append(f"{gci(by_seeds(pr))} paired over {pr['seeds']} seeds: "
-                     + (", ".join(paired_failures(paired_record(pr), pr["user_gain"])) or "fails"))
+                     + (", ".join(paired_failures(paired_record(pr))) or "fails"))
     else:
         tried.append(f"switched off, the terms cost that fit only {gci(pr['terms_share'])}: within the refit noise "
                      "floor (not fitted at other seeds)")

@@ -5,7 +5,7 @@ A fit from scratch lands in another optimum than the fit it is compared with; ju
 two independent optima can exceed a term's gain. The second look fits the terms from scratch at `n_paired`
 other seeds too and pairs each with the fit without the judged terms at the same seed (same minibatches and
 recipe): the seeds' mean paired gain, beyond the spread of the paired gains, every seed above 0, the user's
-error not growing, and, first, the judged terms' own share of their fit beyond the refit noise floor. It is a
+error not growing beyond the seeds' spread, and, first, the judged terms' own share of their fit beyond the refit noise floor. It is a
 look of the decision that calls it: its level is that decision's share of the budget (`settings.Budget`)."""
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from .refits import other_seeds
-from .rules import confirm, gci
+from .rules import confirm, gci, user_grows
 from .settings import Settings, log
 
 
@@ -50,15 +50,17 @@ def paired_confirm(pairs: list, groups: np.ndarray, kind: str, s: Settings, alph
                 seeds=K, design="paired over minibatch seeds", twins=twins, d=d_mean)
 
 
-def paired_failures(pr: dict, user_gain: float) -> list[str]:
-    """Why a paired comparison over seeds (`paired_record` of `paired_confirm` with the terms' share) failed,
-    each condition in words; `user_gain`: the user's gain of the fit handed over."""
+def paired_failures(pr: dict) -> list[str]:
+    """Why a paired comparison over seeds (`paired_record` of `second_look`'s) failed, each condition in words."""
     by_seed = "by seed " + ", ".join(f"{v:.3g}" for v in pr["gain_by_seed"])
+    user = pr["user"]
     return ([] if pr["passes_bound"] else [
         f"not beyond the spread of the paired gains over {pr['seeds']} seeds "
         f"({pr['noise_between_seeds']:.3g}; {by_seed})"]) + \
         ([] if min(pr["gain_by_seed"]) > 0 else [f"not every seed gains ({by_seed})"]) + \
-        ([] if user_gain > 0 else ["the user's torque error grows"]) + \
+        ([] if not user["grows"] else [
+            f"the user's torque error grows beyond the seeds' spread (mean user gain {user['gain']:.3g}, one-sided "
+            f"bound {user['bound']:.3g} over {user['seeds']} seeds)"]) + \
         ([] if pr["terms_share"]["passes_floor"] else [
             f"switched off, the terms cost their fit only {gci(pr['terms_share'])}: within the refit noise floor "
             "(an effect of this size cannot be told from a refit's noise in these data)"])
@@ -69,7 +71,7 @@ def paired_record(pr: dict) -> dict:
     return dict(gain=pr["gain"], ci=pr["ci"], level=pr["level"], combination=pr["combination"], pooled=pr["pooled"],
                 design=pr["design"], seeds=pr["seeds"], gain_by_seed=pr["gain_by_seed"],
                 noise_between_seeds=pr.get("refit_sd"), above_noise=pr["passes"], passes_bound=pr["passes_bound"],
-                terms_share=pr["terms_share"])
+                terms_share=pr["terms_share"], user=pr["user"], user_gain_by_seed=pr["user_gain_by_seed"])
 
 
 def second_look(ss, key: tuple, init: dict, first, first_errors: tuple, level: float, given: tuple = (),
@@ -109,12 +111,11 @@ def second_look(ss, key: tuple, init: dict, first, first_errors: tuple, level: f
     out = ss.tools.paired_confirm(pairs, ss.groups, ss.group_kind, ss.s, level)
     out["terms_share"] = dict(share, pooled_by_seed=[share["gain"]] + [
         float(np.mean(ss.errors(m.without(judged))[1] - t)) for m, (_, t) in zip(models[1:], pairs[1:])])
-    # the user's error must not grow (rule 1) with the model handed over: the fit at the reference's seed.
-    # Not the seeds' mean: the unweighted error is pooled, so it follows the optimum each seed lands in on the
-    # worst-fitted task (measured: docs/DIAGNOSIS.md)
+    # the user's error must not grow (rule 1) beyond the spread of the seeds' paired user gains (`rules.user_grows`)
     out["user_gain_by_seed"] = [float(np.mean(a - b)) for a, b in users]
     out["user_gain"] = out["user_gain_by_seed"][0]
-    out["confirmed"] = bool(out["passes"] and out["user_gain"] > 0 and out["terms_share"]["passes_floor"])
+    out["user"] = user_grows(out["user_gain_by_seed"], ss.s.alpha)
+    out["confirmed"] = bool(out["passes"] and not out["user"]["grows"] and out["terms_share"]["passes_floor"])
     out["models"], out["looked"] = models, True
     if not given:
         ss.cache.paired[key] = out

@@ -100,7 +100,7 @@ class Session:
             d, self.groups, self.group_kind, self.s, neutral=LIBRARY[effect].theta_neutral,
             by_group=lambda masks: inference.param_by_group(fitted_model, self.flat, effect, j, self.held, masks),
             twins=self.twin_d if twins is None else twins, param_path=LIBRARY[effect].needs_exo,
-            family=self.n_candidates)
+            family=self.n_candidates, positive=LIBRARY[effect].positive)
         out["scale"] = self.scale        # the gains per group are the decision's
         return out
 

@@ -173,7 +173,7 @@ def _why_rejected(entry, c) -> list[str]:
         else:
             why.append(f"fitted from scratch ({fs['estimate']:.4g}) it gains {dg['gain']:.3g} "
                        f"[{dg['ci'][0]:.3g}, {dg['ci'][1]:.3g}] paired over seeds ({dg['combination']}, "
-                       f"{100 * dg['level']:.2f} %): " + ", ".join(paired_failures(dg, fs["user_gain"])))
+                       f"{100 * dg['level']:.2f} %): " + ", ".join(paired_failures(dg)))
     if not entry["identifiable"]:
         why.append("parameter not identified (CI reaches the no-effect value / boundary)")
     if entry["passes_gain"] and not entry["passes_invariance"]:
