@@ -116,8 +116,8 @@ def test_task_invariance_parameter_path_asks_whether_a_new_task_would_show_the_e
     se = dict(ball_toss=0.00995, jump=0.00082, run=0.00058, sit_to_stand=0.00389, squat=0.00381, walk=0.0019,
               rest=0.00092)
     res = invariance_rule(d, groups, "task", s, by_group=_by_group(theta, se), positive=True)
-    assert res["heterogeneity"]["p"] < 0.05                              # exact agreement is rejected ...
-    assert res["new_group"]["prediction"][0] > 0.02 and res["consistent"] and res["passes"], res  # ... a new task shows it
+    assert res["heterogeneity"]["p"] < 0.05                              # exact agreement is rejected, ...
+    assert res["new_group"]["prediction"][0] > 0.02 and res["consistent"] and res["passes"], res  # a new task shows it
     around_0 = dict(theta, jump=-0.012, run=0.004, walk=-0.006, squat=0.02)
     res = invariance_rule(d, groups, "task", s, by_group=_by_group(around_0, se), positive=True)
     assert res["new_group"]["prediction"][0] < 0 and not res["consistent"] and not res["passes"], res

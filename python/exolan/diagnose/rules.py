@@ -132,10 +132,10 @@ def invariance_rule(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, b
     physical side of no effect (`consistency.pooled`, the recordings' check; `positive`: only θ above `neutral`
     is physical; three groups or more). Exact agreement alone asks too much: with this much data Q rejects any
     difference of the base's bias between tasks, also beside a real effect (a knee delay of 30 ms fitted at
-    26-35 ms in six tasks, Q's p 0.03: docs/DIAGNOSIS.md, "Rule 5 asks for a new task"). The parameter test is the more sensitive one
-    for a small effect: it asks only for the direction the residual wants, while a gain has to beat a refit's
-    noise; a term that lives on some tasks' misfit wants a different θ in each task, on either side of no
-    effect. The rest's gain must still point the right way (mean above 0): where a flexible
+    26-35 ms in six tasks, Q's p 0.03: docs/DIAGNOSIS.md, "Rule 5 asks for a new task"). The parameter test is
+    the more sensitive one for a small effect: it asks only for the direction the residual wants, while a gain
+    has to beat a refit's noise; a term that lives on some tasks' misfit wants a different θ in each task, on
+    either side of no effect. The rest's gain must still point the right way (mean above 0): where a flexible
     model already represents a stereotyped motion's pseudo-dissipation (walking) the parameter step agrees with
     anything while the gain stays at 0 or below (measured: docs/DIAGNOSIS.md, "Measurements behind the code").
 

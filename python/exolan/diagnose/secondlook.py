@@ -5,8 +5,9 @@ A fit from scratch lands in another optimum than the fit it is compared with; ju
 two independent optima can exceed a term's gain. The second look fits the terms from scratch at `n_paired`
 other seeds too and pairs each with the fit without the judged terms at the same seed (same minibatches and
 recipe): the seeds' mean paired gain, beyond the spread of the paired gains, every seed above 0, the user's
-error not growing beyond the seeds' spread, and, first, the judged terms' own share of their fit beyond the refit noise floor. It is a
-look of the decision that calls it: its level is that decision's share of the budget (`settings.Budget`)."""
+error not growing beyond the seeds' spread, and, first, the judged terms' own share of their fit beyond the
+refit noise floor. It is a look of the decision that calls it: its level is that decision's share of the budget
+(`settings.Budget`)."""
 from __future__ import annotations
 
 import math
