@@ -118,6 +118,8 @@ def test_task_invariance_parameter_path_asks_whether_a_new_task_would_show_the_e
     res = invariance_rule(d, groups, "task", s, by_group=_by_group(theta, se), positive=True)
     assert res["heterogeneity"]["p"] < 0.05                              # exact agreement is rejected, ...
     assert res["new_group"]["prediction"][0] > 0.02 and res["consistent"] and res["passes"], res  # a new task shows it
+    from exolan.diagnose.report import _evidence_lines
+    assert any("a new task's 95 % prediction interval [0.0" in x for x in _evidence_lines(dict(task_invariance=res)))
     around_0 = dict(theta, jump=-0.012, run=0.004, walk=-0.006, squat=0.02)
     res = invariance_rule(d, groups, "task", s, by_group=_by_group(around_0, se), positive=True)
     assert res["new_group"]["prediction"][0] < 0 and not res["consistent"] and not res["passes"], res

@@ -64,7 +64,9 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    family-wise 95% level, Bonferroni over the candidates considered, excludes the no-effect value) — a term that
    only soaks up the misfit of the worst-fitted tasks is rejected. Exo-driven terms, whose excitation depends
    on the task, may instead show that the other tasks identify the parameter on their own (Gauss-Newton step,
-   HAC SE) and that every task's θ agrees (Cochran's Q, p > 0.05), with a mean gain above 0 there. No task
+   HAC SE) and that every task shows it — the tasks' θ agree (Cochran's Q, p > 0.05) or, where they differ, a
+   new task's 95 % prediction interval from their random-effects pool lies on the physical side of no effect —,
+   with a mean gain above 0 there. No task
    may be made worse beyond its sampling and refit noise (Bonferroni over the tasks);
 6. confusable rivals on the same joint that held-out data cannot separate are `ambiguous` (where one reduces to
    the other in a limit, Stribeck to Coulomb as vs → ∞, the simpler is taken); an exo-driven term whose exo-driven
@@ -154,8 +156,11 @@ def _evidence_lines(f: dict) -> list[str]:
     if ti.get("theta_by_group"):
         th = ", ".join(f"{g} {_fmt(v['estimate'], 3)} ± {_fmt(v['se'], 2)}" for g, v in ti["theta_by_group"].items())
         het = ti.get("heterogeneity") or {}
+        ng = ti.get("new_group") or {}
         out.append(f"  - parameter by {ti['by']} (one Gauss-Newton step on its held-out samples, HAC SE): {th}; "
-                   f"Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}")
+                   f"Cochran's Q {_fmt(het.get('Q'), 3)} on {het.get('df')} df, p {_fmt(het.get('p'), 2)}"
+                   + (f"; a new {ti['by']}'s 95 % prediction interval {_fmt(ng['prediction'], 3)} (random effects, "
+                      f"τ {_fmt(ng['tau'], 3)})" if ng.get("prediction") else ""))
     if ti.get("note") and ti.get("dropped"):
         out.append(f"  - {ti['note']}")
     for n in f.get("nulls") or []:      # rule 3, for terms driven by the recorded exo torque
