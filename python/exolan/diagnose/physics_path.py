@@ -153,7 +153,7 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
                     if key in phys.forms and e["status"] == "accepted":
                         with_form(e, phys.forms[key])
                     elif key in phys.forms_refused and e["status"] == "accepted":
-                        e.subject_form_not_taken = dict(phys.forms_refused[key])
+                        e.subject_form_not_taken = phys.forms_refused[key]
                 if key in phys.cross:
                     e["cross_check"] = phys.cross[key].to_json()
             else:

@@ -22,7 +22,7 @@ import numpy as np
 from ..extensions import SIZEABLE
 from . import ident, physics
 from .candidates import LIBRARY
-from .subjects import carriers
+from .subjects import carriers, refused_text
 
 
 def _ci(effect: str, th: float, se: float) -> tuple[float, list]:
@@ -89,10 +89,7 @@ def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -
             if form is not None and form.get("refused"):
                 res.forms_refused[(e, j)] = form
                 if log:
-                    log(f"physics: {e} on {flat.joints[j]} kept shared: θ by subject " + ", ".join(
-                        f"{u} {v['theta']:.3g} ± {v['se']:.2g}" for u, v in form["theta_by_subject"].items())
-                        + f"; none stands out from the mirror of {', '.join(form['unphysical_subjects'])}'s, as "
-                        "clearly on the unphysical side: the subjects' spread is not this term's")
+                    log(f"physics: {e} on {flat.joints[j]} kept shared: {refused_text(form)}")
             elif form is not None:
                 forms[e] = form
         if not forms:

@@ -116,6 +116,18 @@ def gated(init: dict, form: dict | None, effect: str, j: int) -> dict:
     return out
 
 
+def theta_text(form: dict) -> str:
+    """A form record's θ by subject with SEs, for the log."""
+    return ", ".join(f"{u} {v['theta']:.3g} ± {v['se']:.2g}" for u, v in form["theta_by_subject"].items())
+
+
+def refused_text(form: dict) -> str:
+    """Why a refused form (`carriers`' record with unphysical subjects) keeps the term shared, for the log."""
+    return (f"θ by subject {theta_text(form)}; none stands out from the mirror of "
+            f"{', '.join(form['unphysical_subjects'])}'s, as clearly on the unphysical side: the subjects' spread is "
+            "not this term's")
+
+
 def sizes_text(form: dict) -> str:
     """A sizes form's factors e^{a_u} by user, for the log (the fit from scratch's where there is one)."""
     return ", ".join(f"{u} ×{math.exp(a):.3g}" for u, a in
@@ -211,12 +223,10 @@ def take_form(ss, entry, effect: str, j: int, sc: dict, ext, e_user, e) -> tuple
     if form is None:
         return ext, e_user, e
     name = ss.flat.joints[j]
-    post = ", ".join(f"{u} {v['theta']:.3g} ± {v['se']:.2g}" for u, v in form["theta_by_subject"].items())
+    post = theta_text(form)
     if form.get("refused"):
         entry.subject_form_not_taken = form
-        ss.log(f"{effect:18s} {name:9s} kept shared: post-hoc θ by subject {post}; "
-               f"none stands out from the mirror of {', '.join(form['unphysical_subjects'])}'s, as clearly on the "
-               "unphysical side: the subjects' spread is not this term's")
+        ss.log(f"{effect:18s} {name:9s} kept shared: post-hoc {refused_text(form)}")
         return ext, e_user, e
     tried, kinds = _try(ss, entry, effect, j, sc, form, e_user, e)
     take = [k for k in kinds if tried[k]["beats"]]
