@@ -49,6 +49,8 @@ def _open_tools(**over) -> dict:
 
     tools = dict(above_noise=lambda g, sigma, seed=0, alpha=0.05: True,
                  user_improves=lambda before, after: True,
+                 user_grows_beyond_noise=lambda before, after, sigma, alpha: dict(
+                     rules.user_grows_beyond_noise(before, after, sigma, alpha), grows=False),
                  invariance=lambda *a, **k: dict(invariance_rule(*a, **k), passes=True),
                  confirm=lambda *a, **k: dict(confirm(*a, **k), passes=True),
                  paired_confirm=paired,

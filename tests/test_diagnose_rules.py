@@ -142,6 +142,27 @@ def test_the_users_error_grows_only_beyond_the_spread_of_the_seeds():
     assert user_grows([-1e-6], 0.05)["grows"] and not user_grows([1e-6], 0.05)["grows"]    # one seed: its sign
 
 
+def test_the_users_error_of_one_pair_of_fits_from_scratch_grows_only_beyond_the_noise_between_optima():
+    """Rule 1's second condition where a further term is fitted from scratch once: the 4-user delay world's knee
+    delay (docs/DIAGNOSIS.md) lost 1.76e-5 of the user's error at the reference's seed while the term-free optima
+    differ on the user's scale by 2.41e-4 (RMS); the five paired seeds later gave −1.8e-5 .. +3.1e-4. A loss that
+    large against the noise grows; without a measured noise, the sign decides."""
+    from exolan.diagnose.refits import FitCache
+    from exolan.diagnose.rules import user_grows_beyond_noise
+
+    before, after = np.full(50, 1e-3), np.full(50, 1e-3 + 1.76e-5)
+    assert not user_grows_beyond_noise(before, after, 2.41e-4, 0.05)["grows"]
+    assert user_grows_beyond_noise(before, before + 5e-4, 2.41e-4, 0.05)["grows"]
+    assert user_grows_beyond_noise(before, after, 0.0, 0.05)["grows"]
+    assert not user_grows_beyond_noise(before, before - 1e-6, 0.0, 0.05)["grows"]
+    # the noise is the RMS of the twins' mean user differences to the base judged against (not the decision's)
+    u = {0: np.full(10, 1.0), 1: np.full(10, 1.3), 2: np.full(10, 0.6)}
+    fits = iter(range(1, 3))
+    cache = FitCache(None, Settings(n_optima=2), None, lambda m: (u[m], 10 * u[m]), (u[0], 10 * u[0]),
+                     fit=lambda *a, **k: next(fits))
+    assert cache.user_noise((("viscous_damping", 0),)) == pytest.approx(np.sqrt((0.3 ** 2 + 0.4 ** 2) / 2))
+
+
 def test_noise_floor_rule_keeps_the_gains_skew_and_adds_the_refit_noise():
     """Rule 2 is the 2.5 % quantile of the gain's bootstrap replicates plus the refit noise: a right-skewed gain
     (one stretch of badly fitted data carries most of it) whose percentile CI is above 0 passes where the

@@ -222,6 +222,13 @@ class FitCache:
         conf = self.recipe(key)
         return self.workers.once(self.optimum, conf, lambda: self._optima(key, conf))[:3]
 
+    def user_noise(self, key: tuple) -> float:
+        """The noise between optima on the user's (unweighted) scale: the RMS of the mean held-out differences
+        of the user's errors between the term-free base judged against and its twins (`optima`)."""
+        self.optima(key)
+        u_0, _, _, others = self.optimum[self.recipe(key)]
+        return float(np.sqrt(np.mean([np.mean(u_0 - u_k) ** 2 for u_k, _ in others[:self.s.n_optima]])))
+
     def _optima(self, key: tuple, conf: bool) -> tuple:
         t1 = time.time()
         # the base judged against (the reference itself, or fitted with the delay's recipe) beside its twins

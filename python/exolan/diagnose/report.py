@@ -74,7 +74,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    the signal both describe is not shown to be the exo torque's; a further term must add held-out
    gain beyond the noise floor (and lower the unweighted error) on top of the already accepted ones and of the
    better term of each ambiguous set (forward selection), confirmed with both models fitted from scratch where
-   the base was fitted here; the extended model with the terms at their joint estimates must beat the base on
+   the base was fitted here (there the unweighted error may not grow beyond the noise between optima on its own
+   scale, nor, paired over seeds, beyond the seeds' spread); the extended model with the terms at their joint estimates must beat the base on
    held-out data as in rule 1 (fitted from scratch, or else the base's own refit with the terms held there,
    beyond the refit noise; its looks share the confirmation's 5 %), or its terms are `ambiguous`;
 7. encoder offset, torque bias, payload are `absorbable` (never findings).
@@ -381,7 +382,10 @@ def _finding_lines(f: dict, U: str) -> list[str]:
         if fs:
             L.append(f"  - on top of them, both fitted from scratch: {_fmt(fs['gain'], 3)} CI {_fmt(fs['ci'], 3)} "
                      f"({fs.get('combination')}, beyond the noise between optima "
-                     f"{_fmt(fs.get('noise_between_optima'), 3)})")
+                     f"{_fmt(fs.get('noise_between_optima'), 3)})" + (
+                         f"; the user's (unweighted) gain {_fmt(fs['user']['gain'], 3)}, "
+                         f"{'below 0 beyond' if fs['user']['grows'] else 'not below 0 beyond'} the noise between "
+                         f"optima on that scale {_fmt(fs['user']['noise'], 3)} (rule 1)" if fs.get("user") else ""))
             pr = fs.get("paired") or {}
             if pr.get("seeds"):
                 L.append(f"  - paired over {pr['seeds']} seeds (each with the fit of the terms before it at "

@@ -76,6 +76,17 @@ def user_grows(gains_by_seed, alpha: float) -> dict:
     return dict(gain=mean, bound=bound, grows=bool(bound < 0), seeds=K)
 
 
+def user_grows_beyond_noise(e_before: np.ndarray, e_after: np.ndarray, sigma_u: float, alpha: float) -> dict:
+    """Rule 1's second condition for one pair of fits from scratch: the user's error grows only where its mean
+    gain lies below 0 beyond the noise between optima on the user's scale σ_u (`FitCache.user_noise`), gain +
+    z(1 − α) σ_u < 0 (one-sided, as `user_grows` over seeds). The decision's gain of the same pair is judged
+    beyond that noise (rule 2); the user's, pooled over samples, scatters more between optima, and one fit's
+    sign sent a term found at every seed to the paired look (docs/DIAGNOSIS.md, "`secondlook`")."""
+    gain = float(np.mean(np.asarray(e_before) - np.asarray(e_after)))
+    bound = gain + float(scipy_stats.norm.ppf(1 - alpha)) * float(sigma_u)
+    return dict(gain=gain, bound=bound, noise=float(sigma_u), grows=bool(bound < 0 if sigma_u > 0 else gain <= 0))
+
+
 def group_gains(d: np.ndarray, groups: np.ndarray, s: Settings, twins: list | None = None) -> dict:
     """The held-out gain series d by group (task, or trial): each group's mean, its block-bootstrap SE, the
     twin refits' mean difference there (`twins`: per-sample held-out differences reference − twin, aligned

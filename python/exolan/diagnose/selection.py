@@ -148,9 +148,9 @@ def further(ss, e, sel: Selection, cur, cur_u, cur_e) -> bool:
 def _further_from_scratch(ss, e, sel: Selection, jj: int, init: dict, level: float, inv: dict) -> tuple[bool, dict]:
     """A further term confirmed from scratch: the accepted terms' warm-started parameters are biased towards "no
     effect", and a term on the same joint can pass by soaking up what they leave over. Both models from scratch
-    with the same recipe, beyond the noise between optima (`FitCache.optima`), the tasks combined; where that
-    fails with a positive gain, the second look (paired over seeds) on the same fits. Two looks, each at half the
-    level."""
+    with the same recipe, beyond the noise between optima (`FitCache.optima`), the tasks combined, the user's
+    error not growing beyond that noise on its own scale; where that fails with a positive gain, the second look
+    (paired over seeds) on the same fits. Two looks, each at half the level."""
     n_looks = 2 if ss.s.rescue else 1
     k_cur, k_both = tuple(sorted(sel.given)), tuple(sorted(sel.given + [(e["effect"], jj)]))
     u_cur_f, e_cur_f = ss.errors(ss.cache.fresh(k_cur, init, recipe=k_both))
@@ -159,13 +159,16 @@ def _further_from_scratch(ss, e, sel: Selection, jj: int, init: dict, level: flo
     tw = ss.cache.optima(k_both)[2]
     gf = ss.confirm(e_cur_f, e_both_f, level / n_looks, twins=tw, look="forward: cross-seed")
     invf = ss.invariance(e_cur_f - e_both_f, both_f, e["effect"], jj, twins=tw)
+    user = ss.tools.user_grows_beyond_noise(u_cur_f, u_both_f, ss.cache.user_noise(k_both), ss.s.alpha)
     fs = dict(gain=gf["gain"], ci=gf["ci"], combination=gf["combination"], pooled=gf["pooled"],
-              noise_between_optima=gf.get("refit_sd"), task_invariance=invf,
-              user_gain=float(np.mean(u_cur_f - u_both_f)), level=gf["level"])
+              noise_between_optima=gf.get("refit_sd"), task_invariance=invf, user_gain=user["gain"], user=user,
+              level=gf["level"])
     e.conditional_gain["from_scratch"] = fs
     ss.log(f"{e['effect']} {e['joint']} on top of {e.conditional_gain['given']}, both fitted from scratch: gain "
-           f"{gci(gf)} ({gf['combination']}, beyond the noise between optima: {'passes' if gf['passes'] else 'fails'})")
-    passes = gf["passes"] and invf["passes"] and ss.tools.user_improves(u_cur_f, u_both_f)
+           f"{gci(gf)} ({gf['combination']}, beyond the noise between optima: {'passes' if gf['passes'] else 'fails'});"
+           f" the user's gain {user['gain']:.3g} (noise between optima on its scale {user['noise']:.3g}: "
+           f"{'below 0 beyond it' if user['grows'] else 'not below 0 beyond it'})")
+    passes = gf["passes"] and invf["passes"] and not user["grows"]
     if not passes and n_looks == 2 and gf["gain"] > 0:
         pr = ss.second_look(k_both, init, both_f, (u_both_f, e_both_f), level / n_looks, given=k_cur,
                             given_errors=(u_cur_f, e_cur_f))

@@ -25,6 +25,7 @@ class Tools:
     gain: Callable = rules.paired_gain                  # the paired held-out gain and its bootstrap
     above_noise: Callable = rules.above_noise           # rule 2
     user_improves: Callable = rules.user_improves       # rule 1's second condition
+    user_grows_beyond_noise: Callable = rules.user_grows_beyond_noise  # the same for fits from scratch
     invariance: Callable = rules.invariance_rule        # rule 5
     confirm: Callable = rules.confirm                   # a fit from scratch or the extended model vs. its base
     paired_confirm: Callable = secondlook.paired_confirm  # the second look's comparison
