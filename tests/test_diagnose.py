@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from exolan.diagnose import diagnose, stats
+from exolan.diagnose.candidates import LIBRARY
 from exolan.diagnose.synthetic import linear_drive
 
 
@@ -215,6 +216,16 @@ def _check_world(tmp_path, case, users=2, tasks=WORLD_TASKS, seconds=16, **setti
         print(f"a delay of {1e3 * value:.3g} ms beside this world's detection limit of {1e3 * lim:.3g} ms: missed")
         assert found == [] and value < 2 * lim, msg
         assert value < lim or named or short, f"a delay under twice the limit must be named or sized under it; {msg}"
+        return rep
+    own = [e for e in rep["rejected"] if (e["effect"], e["joint"]) == (eff, joint)]
+    if LIBRARY[eff].linear and (eff, joint) not in found and own and own[0].get("size_limit") is not None:
+        # A term linear in its size whose warm refit gained but not at its level: the report states the size from
+        # which these data would show it (`single.size_limit`). A miss is what the report predicts only where the
+        # truth lies below that limit, with the term sized within 20 % and nothing else accepted (measured: hip
+        # Coulomb 1.611, seed 3421: sized 1.50, its gain short of the 99.72 % level; docs/DIAGNOSIS.md).
+        lim = float(own[0]["size_limit"])
+        print(f"a {eff} of {value} beside the size these data would show, {lim:.3g}: missed")
+        assert found == [] and value < lim and abs(own[0]["estimate"] - value) <= 0.2 * value, msg
         return rep
     assert (eff, joint) in found, msg
     assert found == [(eff, joint)], f"something besides the planted effect was accepted; {msg}"

@@ -378,3 +378,36 @@ def test_a_term_outside_its_physical_domain_is_not_that_effect():
     assert not LIBRARY["torque_gain"].outside_domain([-0.2, 1.4])      # reaches into the domain: judged as usual
     assert LIBRARY["viscous_damping"].outside_domain([-3.0, -0.5])
     assert not LIBRARY["encoder_offset"].outside_domain([-3.0, -0.5])   # an offset may have either sign
+
+
+def test_a_linear_terms_size_limit_is_where_its_gain_would_clear_the_level():
+    """`single.size_limit`: a term linear in θ whose warm refit gained but not at its level is told the size from
+    which these data would show it. Its gain per sample is δ² + 2 δ ε with δ = θ x: the limit taken from one fit at
+    θ0 (gain scaled as θ², its sampling error as θ) must separate sizes that pass rule 1's bound at the level from
+    sizes that do not, on the same residual; the reason names it."""
+    from exolan.diagnose.candidates import LIBRARY
+    from exolan.diagnose.results import Verdict
+    from exolan.diagnose.single import _why_rejected, size_limit
+
+    rng = np.random.default_rng(4)
+    s, N, level = Settings(n_boot=2000), 20000, 0.05 / 18
+    x = np.sign(np.sin(np.arange(N) / 40.0)) * (1 + 0.2 * rng.standard_normal(N))
+    eps = np.convolve(rng.standard_normal(N), np.ones(5) / 5, mode="same") * 8.0
+    eps -= np.mean(x * eps) / np.mean(x * x) * x     # the expected gain θ² P: no chance share of x in the misfit
+
+    def fit_at(theta):
+        e_ref = (eps + theta * x) ** 2          # the reference keeps the term in its residual
+        return paired_gain(e_ref, eps ** 2, s, alpha=level)
+
+    theta0 = 0.2
+    g0 = fit_at(theta0)
+    assert g0["gain"] > 0 and g0["ci"][0] < 0          # seen, not claimed at the level
+    lim = size_limit(g0, 0.0, theta0, level)
+    assert lim > theta0
+    assert fit_at(1.25 * lim)["ci"][0] > 0 and fit_at(0.8 * lim)["ci"][0] < 0
+    assert size_limit(fit_at(0.1), 0.0, 0.1, level) == pytest.approx(lim, rel=0.02)     # z SE(x ε) / P, not θ0
+    v = Verdict(effect="coulomb_friction", joint="hip", estimate=theta0, passes_gain=False, passes_floor=True,
+                decision_gain=dict(gain=g0["gain"], ci=g0["ci"]), heldout_gain=g0["gain"], level=level,
+                size_limit=lim, identifiable=True, passes_invariance=True)
+    why = "; ".join(_why_rejected(v, LIBRARY["coulomb_friction"]))
+    assert f"from about {lim:.3g}" in why and "CI includes 0" in why

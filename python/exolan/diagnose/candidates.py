@@ -170,6 +170,7 @@ class Candidate:
     shape_default: float = 0.1
     limit_key: str | None = None
     domain_lo: float = -float("inf")   # the reported parameter's physical domain lies above this (`sign`)
+    linear: bool = False          # adds θ times a signal of the motion: its held-out gain grows as θ² (`size_limit`)
     start: Callable | None = field(default=None, compare=False, repr=False)      # (screen θ, screen) -> {value}
     theta: Callable | None = field(default=None, compare=False, repr=False)      # (model, j) -> (raw, θ())
     inject: Callable | None = field(default=None, compare=False, repr=False)     # (τ_e, θ, lengths, dt) -> Δτ_rec
@@ -232,10 +233,10 @@ class Candidate:
 LIBRARY: dict[str, Candidate] = {c.effect: c for c in [
     Candidate("viscous_damping", "joint friction proportional to velocity: torque −b q̇ dissipates b q̇² of power",
               "b ≥ 0", "N m s/rad", "N s/m", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
-              features=_f_viscous, theta=lambda m, j: (m.damping_diag, lambda: float(m.damping_matrix()[j, j]))),
+              linear=True, features=_f_viscous, theta=lambda m, j: (m.damping_diag, lambda: float(m.damping_matrix()[j, j]))),
     Candidate("coulomb_friction", "dry friction of constant magnitude opposing motion: −Fc sign(q̇)",
               "Fc ≥ 0", "N m", "N", "finding", 0.0, positive=True, domain_lo=0.0, start=_start_positive,
-              features=_f_coulomb, theta=lambda m, j: (m.coulomb_raw, lambda: float(m.coulomb()[j]))),
+              linear=True, features=_f_coulomb, theta=lambda m, j: (m.coulomb_raw, lambda: float(m.coulomb()[j]))),
     Candidate("stribeck_friction", "static friction in excess of Coulomb that vanishes above a Stribeck velocity vs: "
               "−Fs exp(−(q̇/vs)²) sign(q̇)", "Fs ≥ 0, vs > 0", "N m", "N", "finding", 0.0, positive=True,
               shape="stribeck_vs", domain_lo=0.0, start=_start_positive,

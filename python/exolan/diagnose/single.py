@@ -10,6 +10,7 @@ import numpy as np
 from .candidates import LIBRARY, blank_entry
 from .export import extend
 from .inference import identifiable
+from .limits import injected_limit
 from .refits import refit
 from .rules import gci, invariance_reason
 from .screen import screen
@@ -78,6 +79,8 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
     # rule 1 at the candidate's level on the decision's scale, and the user's torque error must not grow
     entry.passes_gain = bool(ss.passes_at(g, level) and gu["gain"] > 0)
     entry.passes_floor = ss.above_noise(g, alpha=level)
+    if c.linear and g["gain"] > 0 and not (entry.passes_gain and entry.passes_floor):
+        entry.size_limit = size_limit(g, ss.sigma_r, abs(est - c.neutral), level)
     # rule 5 for every term, exo-driven ones included (a clean world's hip "delay" rested on two tasks)
     entry.task_invariance = ss.invariance(ss.e_ref - e, ext, effect, j)
     entry.passes_invariance = entry.task_invariance["passes"]
@@ -153,6 +156,14 @@ def rescue(ss, entry, effect: str, j: int, sc: dict, level: float) -> None:
     ss.fitted[(effect, j)] = (m, e_f)
 
 
+def size_limit(g: dict, sigma_r: float, theta: float, level: float) -> float:
+    """The size from which a term linear in θ (`Candidate.linear`) would pass rules 1 and 2 in these data, given
+    its warm refit at |θ − no effect| = `theta` with decision gain g: the gain grows as θ², its sampling error
+    as θ (`limits.injected_limit`, the fit itself taken as the injection). The refit's gain holds what the base
+    absorbed of the term, so this is the limit of the learned path as it decided, first order in θ."""
+    return injected_limit(g["gain"], g["se"], sigma_r, theta, level)
+
+
 def _why_rejected(entry, c) -> list[str]:
     why = []
     if not entry["passes_gain"]:
@@ -161,6 +172,10 @@ def _why_rejected(entry, c) -> list[str]:
                    f"held-out gain not above 0 at the candidate's level ({100 * (1 - entry['level']):.2f} %)")
     elif not entry["passes_floor"]:
         why.append("gain within the refit noise floor")
+    if entry.get("size_limit") is not None and not (entry["passes_gain"] and entry["passes_floor"]):
+        unit = f" {entry['unit']}" if entry.get("unit") else ""
+        why.append(f"these data show a term of this kind from about {entry['size_limit']:.3g}{unit} (its gain, "
+                   f"{entry['decision_gain']['gain']:.3g} at {entry['estimate']:.3g}, grows as the size squared)")
     fs = entry.get("from_scratch")
     if fs and not fs["passes"]:
         dg = fs.get("decision_gain")
