@@ -86,6 +86,9 @@ def test_linear_drive_viscous_friction_layout2(tmp_path, viscous):
         lo_id, hi_id = f["ci_identification"]
         assert 0 < lo_id <= f["estimate"] <= hi_id and f["ci"][0] <= lo_id and hi_id <= f["ci"][1]
         assert "rule 4 checks against the no-effect value" in (tmp_path / "diagnosis.md").read_text()
+        # where the joint fit's own interval and the warm start's do not overlap, the finding says so
+        w_lo, w_hi = f["ci_warm_start"]
+        assert ("two fits disagree" in (f.get("note") or "")) == (hi_id < w_lo or w_hi < lo_id), msg
         # decided on the misfit-weighted held-out error, reported with the user's unweighted one beside it
         assert f["decision_gain"]["scale"] == "misfit-weighted" and f["decision_gain"]["ci"][0] > 0
     assert rep["baseline"]["noise_floor"]["scale"] == "misfit-weighted"
