@@ -270,3 +270,32 @@ def test_the_learned_paths_data_are_compensated_for_the_terms_rule_6_keeps(dampe
                    tools=Tools(adequacy=_gate(dict(shoulder=False, elbow=True), [])))
     assert rep["data"]["learned_path_compensated_for"] == ["viscous_damping:elbow"]
     assert rep["physics"]["learned_check"]["viscous_damping:elbow"]["ci"][0] > 0
+
+
+def test_a_learned_finding_whose_parametric_size_disagrees_spans_both_and_says_so():
+    """Issue 38: where the two bases size a term beyond each other's intervals, the report says so instead of
+    picking one. The learned finding keeps its size; its interval spans both (its own kept as `ci_learned`), with
+    the two sizes in the note; where the intervals overlap nothing changes (the 4-user hip Coulomb world's numbers:
+    learned 2.402 [1.86, 2.95], parametric 1.578 [1.301, 1.855])."""
+    from exolan.diagnose.estimates import TermEstimate
+    from exolan.diagnose.physics import PhysicsResult
+    from exolan.diagnose.physics_path import attach
+    from exolan.diagnose.results import Verdict
+
+    class Flat:
+        joints = ("hip", "knee")
+
+    def run(par_ci):
+        e = Verdict(effect="coulomb_friction", joint="hip", status="accepted", estimate=2.402, ci=[1.86, 2.95])
+        phys = PhysicsResult(alpha=0.05, family=14)
+        phys.status[("coulomb_friction", 0)] = ("not selected", "a single-term fit")
+        phys.estimates[("coulomb_friction", 0)] = TermEstimate("coulomb_friction", "hip", sum(par_ci) / 2,
+                                                               list(par_ci), sum(par_ci) / 2, 0.14, 1e-29)
+        attach([e], phys, Flat())
+        return e
+
+    e = run((1.301, 1.855))
+    assert e["estimate"] == 2.402 and e["ci"] == [1.301, 2.95] and e["ci_learned"] == [1.86, 2.95]
+    assert "two bases disagree" in e["note"] and "1.578" in e["note"] and "[1.86, 2.95]" in e["note"]
+    e = run((1.7, 2.0))
+    assert e["ci"] == [1.86, 2.95] and e.get("ci_learned") is None and not e.get("note")

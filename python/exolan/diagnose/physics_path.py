@@ -321,7 +321,8 @@ def checked(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, residual
 
 def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
     """The learned path: every candidate entry carries the parametric estimate; a disagreement beyond both
-    intervals is said in a note (not resolved by picking one)."""
+    intervals is said in a note and not resolved by picking one: the finding keeps its learned size, its interval
+    spans both (the learned one kept as `ci_learned`), as physics first's cross-check does the other way round."""
     for e in results:
         key = (e["effect"], flat.joints.index(e["joint"]))
         st, why = phys.status.get(key, (None, None))
@@ -339,8 +340,10 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
         if m and e.get("status") == "accepted" and e.get("ci"):
             lo, hi = e["ci"]
             if m.ci[1] < lo or m.ci[0] > hi:
-                note = (f"the parametric base sizes it {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], outside this "
-                        f"interval: the two bases disagree")
+                e["ci_learned"], e["ci"] = [lo, hi], [min(lo, m.ci[0]), max(hi, m.ci[1])]
+                note = (f"the parametric base sizes it {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], outside the "
+                        f"learned path's interval [{lo:.4g}, {hi:.4g}]: the two bases disagree, and the interval "
+                        "spans both")
                 e["note"] = f"{e['note']}; {note}" if e.get("note") else note
 
 

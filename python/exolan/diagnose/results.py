@@ -43,6 +43,7 @@ class Verdict:
     ci_single_term: object = _f()
     ci_identification: object = _f()
     ci_method: object = _f()
+    ci_learned: object = _f()      # the learned path's own interval where the parametric base's disagrees
     size_limit: object = _f()      # a rejected linear term: the size from which these data would show it
     # the evidence
     screen: object = _f()
