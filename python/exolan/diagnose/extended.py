@@ -164,7 +164,7 @@ def describe(ss, accepted: list, conf: dict, cis: dict, acc_init: dict, starts, 
         e.ci_method = ("HAC sandwich (statsmodels, Newey-West) of the joint refit, widened by its spread to the "
                        f"warm-start fit ({e['warm_start']})")
         own, w_ci = e["ci_identification"], e["ci_warm_start"]
-        if own[1] < w_ci[0] or w_ci[1] < own[0]:    # the two fits of one model: its size is not identified better
+        if stats.span_if_disjoint(own, w_ci):    # the two fits of one model: its size is not identified better
             e.add_note(f"the learned path's two fits disagree: joint fit {est:.4g} [{own[0]:.4g}, {own[1]:.4g}], "
                        f"warm start {e['estimate_warm_start']:.4g} [{w_ci[0]:.4g}, {w_ci[1]:.4g}]; the networks and "
                        "the term share the effect differently in each, and the interval spans both")

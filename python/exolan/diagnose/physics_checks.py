@@ -8,6 +8,7 @@ import numpy as np
 
 from . import ident, parallel_filter, physics_subjects
 from .physics import PhysicsResult, final_fit, term_estimate
+from .stats import span_if_disjoint
 
 
 def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: list) -> dict:
@@ -61,11 +62,11 @@ def verdicts(res: PhysicsResult) -> dict:
             v.update(estimate=m.estimate, ci=list(m.ci))
             c = res.cross.get(key)
             if c is not None:
-                why = unsupported(m, c, res.alpha)
+                why, both = unsupported(m, c, res.alpha), span_if_disjoint(m.ci, c.ci)
                 if why:
                     v.update(status="ambiguous", reason=reason + "; but " + why)
-                elif c.ci[1] < m.ci[0] or c.ci[0] > m.ci[1]:
-                    v["ci"] = [min(m.ci[0], c.ci[0]), max(m.ci[1], c.ci[1])]
+                elif both:
+                    v["ci"] = both
                     v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
                                  f"the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]; the "
                                  "interval spans both")

@@ -339,8 +339,9 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
         e["parametric"] = dict(status=st, reason=why, **(m.to_json() if m else {}))
         if m and e.get("status") == "accepted" and e.get("ci"):
             lo, hi = e["ci"]
-            if m.ci[1] < lo or m.ci[0] > hi:
-                e["ci_learned"], e["ci"] = [lo, hi], [min(lo, m.ci[0]), max(hi, m.ci[1])]
+            both = stats.span_if_disjoint([lo, hi], m.ci)
+            if both:
+                e["ci_learned"], e["ci"] = [lo, hi], both
                 note = (f"the parametric base sizes it {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], outside the "
                         f"learned path's interval [{lo:.4g}, {hi:.4g}]: the two bases disagree, and the interval "
                         "spans both")

@@ -14,6 +14,14 @@ from statsmodels.stats.diagnostic import acorr_ljungbox
 from statsmodels.tsa.stattools import acf, ccf
 
 
+def span_if_disjoint(a, b) -> list | None:
+    """Two estimates' intervals that do not overlap: the interval that spans both (a disagreement reported, not
+    resolved by picking one); None where they overlap."""
+    if a[1] < b[0] or b[1] < a[0]:
+        return [min(a[0], b[0]), max(a[1], b[1])]
+    return None
+
+
 def block_length(x: np.ndarray, max_lag: int | None = None) -> int:
     """Block length (samples) from the ACF: 2 x the first lag inside the white-noise band ±1.96/√N."""
     x = np.asarray(x, dtype=np.float64)
