@@ -299,3 +299,27 @@ def test_a_learned_finding_whose_parametric_size_disagrees_spans_both_and_says_s
     assert "two bases disagree" in e["note"] and "1.578" in e["note"] and "[1.86, 2.95]" in e["note"]
     e = run((1.7, 2.0))
     assert e["ci"] == [1.86, 2.95] and e.get("ci_learned") is None and not e.get("note")
+
+
+def test_a_parametric_size_outside_the_domain_spans_nothing():
+    """A 4-user world with a knee torque gain of 1.8 (seed 4248): the learned path found 1.665 [1.29, 2.04], the
+    parametric base (not adequate there) put θ past the gain's pole, k = -6.26 [-10.5, -4.46]. A negative gain is no
+    size of this effect (physics first rejects such a term), so the interval stays the learned path's and the note
+    says why; an unbounded parametric interval likewise."""
+    from exolan.diagnose.estimates import TermEstimate
+    from exolan.diagnose.physics import PhysicsResult
+    from exolan.diagnose.physics_path import attach
+    from exolan.diagnose.results import Verdict
+
+    class Flat:
+        joints = ("hip", "knee")
+
+    for par, ci in ((-6.258, [-10.47, -4.461]), (3.0, [2.5, float("inf")])):
+        e = Verdict(effect="torque_gain", joint="knee", status="accepted", estimate=1.665, ci=[1.289, 2.041])
+        phys = PhysicsResult(alpha=0.05, family=14)
+        phys.status[("torque_gain", 1)] = ("not selected", "a single-term fit")
+        phys.estimates[("torque_gain", 1)] = TermEstimate("torque_gain", "knee", par, ci, 1.16, 0.03, 1e-200)
+        attach([e], phys, Flat())
+        assert e["ci"] == [1.289, 2.041] and e.get("ci_learned") is None
+        assert "no size of this effect" in e["note"]
+        assert ("outside its physical domain" if par < 0 else "reaches infinity") in e["note"]

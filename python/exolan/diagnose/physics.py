@@ -283,7 +283,7 @@ def _objection(prob: ident.JointProblem, flat, accepted: list, f: ident.Fit, e: 
                gain: dict, alpha: float) -> tuple[str | None, dict | None]:
     """Why a significant term cannot be taken (None: it can) and its recordings' check: inside its domain with a
     bounded size, a constant across recordings, a held-out gain, and (a gain) on the controller's own variation."""
-    why = _inadmissible(e, te)
+    why = inadmissible(e, te)
     if why:
         return why, None
     cons = consistency.across_trials(prob, f, e, split, flat)
@@ -405,7 +405,7 @@ def _held_out_fit(res: PhysicsResult, prob: ident.JointProblem, accepted: list, 
                                           f"{g['gain']:.3g} [{g['ci'][0]:.3g}, {g['ci'][1]:.3g}]")
 
 
-def _inadmissible(e: str, te) -> str | None:
+def inadmissible(e: str, te) -> str | None:
     """Why a significant term's size cannot be taken (outside its physical domain, or an interval that reaches
     infinity: a size the data do not bound), or None."""
     if LIBRARY[e].outside_domain(te.ci):
@@ -447,7 +447,7 @@ def _rivals(res, probs, cur, accepted, flat, thr, n_boot):
                 if _p(probs[j], alt, rv) > thr:
                     continue
                 te = term_estimate(probs[j], alt, rv, flat.joints[j])
-                if _inadmissible(rv, te) or (ident.TERMS[rv].own_variation and own_variation(
+                if inadmissible(rv, te) or (ident.TERMS[rv].own_variation and own_variation(
                         probs[j], flat, [x for x in alt_terms if x != rv], te, res.alpha)):
                     continue                # what an accepted term must be, a rival must be too
                 if consistency.across_trials(probs[j], alt, rv, rv in alt.split, flat)["consistent"] is False:

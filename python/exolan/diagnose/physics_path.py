@@ -322,7 +322,8 @@ def checked(phys: physics.PhysicsResult, base, ref, flat, s, joint_ids, residual
 def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
     """The learned path: every candidate entry carries the parametric estimate; a disagreement beyond both
     intervals is said in a note and not resolved by picking one: the finding keeps its learned size, its interval
-    spans both (the learned one kept as `ci_learned`), as physics first's cross-check does the other way round."""
+    spans both (the learned one kept as `ci_learned`), as physics first's cross-check does the other way round. A
+    parametric size that physics first could not take (outside the physical domain, unbounded) spans nothing."""
     for e in results:
         key = (e["effect"], flat.joints.index(e["joint"]))
         st, why = phys.status.get(key, (None, None))
@@ -339,6 +340,11 @@ def attach(results: list, phys: physics.PhysicsResult, flat) -> None:
         e["parametric"] = dict(status=st, reason=why, **(m.to_json() if m else {}))
         if m and e.get("status") == "accepted" and e.get("ci"):
             lo, hi = e["ci"]
+            bad = physics.inadmissible(e["effect"], m)
+            if bad:     # outside the domain or unbounded: not a size of this effect, so nothing to span
+                note = f"the parametric base's size is no size of this effect ({bad})"
+                e["note"] = f"{e['note']}; {note}" if e.get("note") else note
+                continue
             both = stats.span_if_disjoint([lo, hi], m.ci)
             if both:
                 e["ci_learned"], e["ci"] = [lo, hi], both
