@@ -201,3 +201,28 @@ def test_the_engine_file_leaves_the_backlash_to_its_metadata(tmp_path):
                            torch.zeros(8, dtype=torch.float64)).numpy()
     got = eng.inverse_dynamics(q, qd, qdd, f_v=np.zeros(8))
     assert np.abs(got - want).max() <= 1e-9 * np.abs(want).max()
+
+
+def test_a_steps_candidates_tested_side_by_side_give_the_same_selection_bit_for_bit():
+    """`physics.select` tests a step's candidates on the running diagnosis' workers, each on its own view of the
+    joint's problem (`JointProblem.view`; the shift basis of a backlash made once and shared). Two workers must
+    give what one gives, bit for bit: every step's p and estimate, every status; and the problem keeps no split."""
+    import copy
+
+    from exolan.diagnose import physics
+    from exolan.diagnose.flat import prepare
+    from exolan.diagnose.workers import Workers, running
+
+    flat = prepare([_pendulum(0.03, 0.4, s, f"p{s}") for s in range(3)])
+    base = physics.setup(flat, ("viscous_damping", "coulomb_friction", "stribeck_friction", "backlash"), [0])
+    out = []
+    for n in (1, 2):
+        res = copy.deepcopy(base)
+        with running(Workers(n)):
+            physics.select(res, flat)
+        out.append(res)
+        assert res._probs[0].split == {} and ("backlash", 0) in res.accepted
+    one, two = out
+    assert [(t["effect"], t["p"], t["estimate"], t["ci"]) for t in one.tests] == \
+        [(t["effect"], t["p"], t["estimate"], t["ci"]) for t in two.tests]
+    assert one.status == two.status and one.accepted == two.accepted

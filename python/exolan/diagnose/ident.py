@@ -19,7 +19,9 @@ linearised model at the optimum. Terms and their tests live in `TERMS`.
 """
 from __future__ import annotations
 
+import copy
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,6 +32,8 @@ from ..extensions import COULOMB_EPS
 from . import wls
 from .parallel_filter import Signals
 from .shift import ShiftBasis, backlash_col, backlash_grid
+
+_BASIS_LOCK = threading.Lock()     # a shift basis is made once per joint, whichever thread asks first
 
 SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
 
@@ -233,10 +237,20 @@ class JointProblem:
         return 0.0
 
     def _basis(self) -> ShiftBasis:
-        if self._shift is None:
-            h = 0.25 * min(min(self.grid(e)) for e in TERMS if TERMS[e].shift)
-            self._shift = ShiftBasis(self.sig, self.j, self.Xb, h, base_columns)
-        return self._shift
+        root = self.__dict__.get("_root", self)     # a view's basis is its problem's: made once, shared
+        with _BASIS_LOCK:
+            if root._shift is None:
+                h = 0.25 * min(min(root.grid(e)) for e in TERMS if TERMS[e].shift)
+                root._shift = ShiftBasis(root.sig, root.j, root.Xb, h, base_columns)
+            return root._shift
+
+    def view(self) -> "JointProblem":
+        """This problem for one thread (`physics.select` tests a step's candidates side by side): the data, the
+        weights and the column caches shared; the last shifted design, the factorisations and the subject splits
+        its own (a fit sets them as it goes). A view's fits are the problem's, bit for bit."""
+        v = copy.copy(self)
+        v._at, v._qr, v.split, v._root = (None, None), dict(self._qr), dict(self.split), self.__dict__.get("_root", self)
+        return v
 
     def _X(self, u: float) -> np.ndarray:
         """The base's design at the shift u (the measured coordinates at 0); the last shifted one kept."""

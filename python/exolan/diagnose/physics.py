@@ -51,6 +51,7 @@ from . import consistency, ident, parallel_filter, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
 from .estimates import Z95, TermEstimate, ci_text as _ci_text, report_interval, term_estimate  # noqa: F401
 from .flat import exo_own
+from .workers import current
 
 
 @dataclass
@@ -234,10 +235,8 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     accepted = {j: [] for j in joint_ids}
     masks = flat.user_masks()
     while pool:
-        tried = []
-        for e, j in pool:
-            log(f"physics step {r + 1}: testing {e} on {flat.joints[j]}")
-            tried.append(_test(probs[j], accepted[j], e, masks) + (e, j))
+        tried = _test_all(probs, accepted, pool, masks, lambda e, j, r=r: log(
+            f"physics step {r + 1}: testing {e} on {flat.joints[j]}"))
         tried.sort(key=lambda x: (x[0], -_z(x[1], x[3])))      # p underflows to 0 past z ≈ 38: then the larger z
         p, f, split, e, j = tried[0]
         tried = [(pe, ee, jj, ff) for pe, ff, _, ee, jj in tried]
@@ -340,6 +339,18 @@ def final_fit(res: PhysicsResult, flat, j: int, terms: list, n_boot: int) -> Non
     mse = float(np.mean((y - f.pred[sel]) ** 2))
     res.heldout[flat.joints[j]] = dict(rms=math.sqrt(mse), r2=float(1 - mse / np.var(y)),
                                        rms_filtered=float(np.sqrt(np.mean((prob.y - f.pred)[sel] ** 2))))
+
+
+def _test_all(probs: dict, accepted: dict, pool: list, masks, log) -> list:
+    """`_test` of every candidate (effect, joint) in `pool` against its joint's accepted terms, in `pool`'s order
+    with the candidate appended: side by side on the running diagnosis' workers (`workers.current`), each on its own
+    view of the joint's problem (the tests are independent; numpy releases the GIL in its products)."""
+    def one(e, j):
+        log(e, j)
+        return _test(probs[j].view(), accepted[j], e, masks) + (e, j)
+    jobs = [lambda e=e, j=j: one(e, j) for e, j in pool]
+    pool_ = current()
+    return pool_.map(jobs) if pool_ is not None else [job() for job in jobs]
 
 
 def _test(prob: ident.JointProblem, accepted: list, e: str, masks) -> tuple:
