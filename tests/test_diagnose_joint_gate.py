@@ -323,3 +323,28 @@ def test_a_parametric_size_outside_the_domain_spans_nothing():
         assert e["ci"] == [1.289, 2.041] and e.get("ci_learned") is None
         assert "no size of this effect" in e["note"]
         assert ("outside its physical domain" if par < 0 else "reaches infinity") in e["note"]
+
+
+def test_a_joint_failing_the_first_gate_cancels_physics_firsts_extended_model_started_ahead(damped_arm):
+    """Physics first's extended model, started ahead beside the base fit, is handed over only where physics first
+    decides every joint; a joint that fails the first gate goes to the learned path whatever the selection finds,
+    so the fit started ahead is cancelled there and then (its core goes to the selection), not after the
+    selection. (Where every joint passes it runs on and is handed over:
+    `test_physics_first_with_its_extended_model_started_ahead_gives_the_same_diagnosis`.)"""
+    from exolan.diagnose import physics
+    from exolan.diagnose.flat import prepare
+    from exolan.diagnose.procedure import physics_first
+    from exolan.diagnose.settings import Settings
+
+    class Ahead:
+        cancelled = False
+
+        def cancel(self):
+            self.cancelled = True
+
+    flat = prepare(damped_arm)
+    s = Settings(effects=EFFECTS, verbose=False, n_boot=50)
+    phys = physics.setup(flat, EFFECTS, [0, 1])
+    ahead = Ahead()
+    out = physics_first(flat, s, None, [0, 1], phys, _gate(dict(shoulder=False, elbow=False), []), ahead)
+    assert ahead.cancelled and out["paths"] == {"shoulder": "learned", "elbow": "learned"}

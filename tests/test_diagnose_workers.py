@@ -177,6 +177,28 @@ def test_a_fit_started_ahead_stops_at_its_next_progress_tick_when_cancelled():
     tick(0, 0.0)                                # a fit on another thread is not cancelled with it
 
 
+def test_the_helpers_of_work_started_ahead_stop_with_it():
+    """Work started ahead may spread over free permits (`Workers.map` inside it: physics first's candidates side by
+    side); cancelled, its helpers stop at their next tick too, not only its own thread, and every permit returns."""
+    from exolan.diagnose.workers import Ahead, Cancelled, stop_or_go
+    w, ticks = Workers(2), {}
+
+    def job(k):
+        for i in range(10 ** 5):
+            ticks[k] = i
+            stop_or_go()
+            time.sleep(0.001)
+        return k
+    ahead = Ahead(w, lambda: w.map([lambda k=k: job(k) for k in range(2)]))
+    time.sleep(0.2)
+    ahead.cancel()
+    t0 = time.time()
+    with pytest.raises(Cancelled):
+        ahead.result()
+    assert time.time() - t0 < 5 and set(ticks) == {0, 1} and max(ticks.values()) < 10 ** 5 - 1
+    assert w.map([lambda: 1, lambda: 2]) == [1, 2]      # both permits are back
+
+
 def test_work_started_ahead_and_not_taken_stops_when_the_run_ends_even_on_an_error():
     """Every `Ahead` started on a run's pool is cancelled when the run leaves `workers.running`, also where the
     run raised before anyone took its result: no fit keeps a core busy after its diagnosis."""

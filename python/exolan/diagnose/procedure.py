@@ -79,17 +79,21 @@ def fit_base(flat, s: Settings, model, start=None):
     return base, base_start, describe_base(base, flat, s, given=model is not None)
 
 
-def physics_first(flat, s: Settings, ref, joint_ids, phys, gate) -> dict:
+def physics_first(flat, s: Settings, ref, joint_ids, phys, gate, ahead=None) -> dict:
     """The gate per joint equation (`gate`: `physics_path.adequacy` or a test's stub): the parametric family at its
     most (every linear term at once) against the learned reference; the selection runs on the candidates of the
     joints where it is not worse on held-out data, then the cross-check, then the gate again with the accepted terms
-    only. Returns the gate with `paths`: joint name -> the path that decides its candidates."""
+    only. Returns the gate with `paths`: joint name -> the path that decides its candidates. `ahead`: physics first's
+    extended model started ahead, cancelled as soon as a joint fails the first gate (the learned path then decides
+    that joint, and a model of physics first's alone is never handed over): its core goes to the selection."""
     from . import physics, physics_checks, physics_path
 
     first = gate(physics.saturated_held(phys, flat), ref, flat, joint_ids, n_boot=s.n_boot,
                  what="the parametric base with every linear candidate term")
     joints = {nm: dict(v, model=first["model"]) for nm, v in first["joints"].items()}
     passing = [j for j in joint_ids if joints[flat.joints[j]]["adequate"]]
+    if ahead is not None and len(passing) < len(joint_ids):
+        ahead.cancel()
     while passing:
         # a joint that fails the second gate leaves to the learned path: the selection runs again without it, so
         # its acceptances count in no other joint's Holm thresholds (the set only shrinks: at most one rerun a joint)
@@ -207,7 +211,7 @@ def _after_reference(flat, s, trials, model, tools, workers, joint_ids, held, ss
     `ahead`: physics first's extended model started beside the base fit (`physics_path.extended_ahead`)."""
     from . import compensate, physics_path
     raw = ss
-    adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy) if phys is not None else None
+    adequate = physics_first(flat, s, ss.ref, joint_ids, phys, tools.adequacy, ahead) if phys is not None else None
     # each joint's candidates live in its own equation (`ident.JointProblem`): physics first decides those of the
     # joints whose own gate passed, the learned path the others'. (A candidate whose columns touched several
     # joints' equations would go to physics first only if every joint it touches passed; none does today.)

@@ -71,11 +71,14 @@ class Workers:
                 except BaseException as exc:       # re-raised in the caller, the other results dropped
                     failed.append(exc)
 
+        stop = getattr(_STOP, "event", None)     # the caller's work, if cancelled (`Ahead`), stops its helpers too
+
         def helper():       # runs on a permit `recruit` took for it
-            self._held.permit = True
+            self._held.permit, _STOP.event = True, stop
             try:
                 drain()
             finally:
+                _STOP.event = None
                 self._give()
 
         def recruit():
