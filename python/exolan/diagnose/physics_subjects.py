@@ -22,7 +22,7 @@ import numpy as np
 from ..extensions import SIZEABLE
 from . import ident, physics
 from .candidates import LIBRARY
-from .subjects import carriers, refused_text
+from .subjects import carriers, refused_text, theta_text
 
 
 def _ci(effect: str, th: float, se: float) -> tuple[float, list]:
@@ -66,8 +66,11 @@ def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, ro
         return None
     g = physics._held_gain(prob.held_sq(f), prob.held_sq(fit), n_boot)
     out["advantage_over_shared"] = dict(gain=g["gain"], ci=g["ci"], scale="parametric base, unweighted")
-    if not g["ci"][0] > 0:
-        return None
+    if not g["ci"][0] > 0:      # kept shared, and the record says why (the report's "one term for every subject")
+        adv = out.pop("advantage_over_shared")
+        kept = {k: v for k, v in out.items() if k not in ("trials", "subject_of_trial")}
+        return dict(kept, not_taken=True, **{("sizes_advantage_over_shared" if out["kind"] == "sizes"
+                                              else "advantage_over_shared"): adv})
     out["fit"] = fit
     return out
 
@@ -86,10 +89,11 @@ def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -
         shared = prob.fit(res._fits[j].terms, intervals=False)
         for e in [x for x in res._fits[j].terms if not ident.TERMS[x].fixed]:   # a delay's size is its ν
             form = form_of(prob, shared, e, users, row_user, flat, n_boot)
-            if form is not None and form.get("refused"):
+            if form is not None and (form.get("refused") or form.get("not_taken")):
                 res.forms_refused[(e, j)] = form
                 if log:
-                    log(f"physics: {e} on {flat.joints[j]} kept shared: {refused_text(form)}")
+                    log(f"physics: {e} on {flat.joints[j]} kept shared: " + (refused_text(form) if form.get("refused")
+                                                                             else not_taken_text(form)))
             elif form is not None:
                 forms[e] = form
         if not forms:
@@ -107,3 +111,11 @@ def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -
                 f"p {form['heterogeneity']['p']:.2g}): {what}, {form['estimate']:.4g} [{form['ci'][0]:.4g}, "
                 f"{form['ci'][1]:.4g}]; beats the shared term on held-out data by "
                 f"{form['advantage_over_shared']['gain']:.3g}")
+
+
+def not_taken_text(form: dict) -> str:
+    """Why a form the subjects' θ ask for keeps the term shared (`form_of`: no held-out advantage), for the log."""
+    what = (f"a term of {', '.join(form['subjects'])} only" if form["kind"] == "switch" else "a size per subject")
+    adv = form.get("advantage_over_shared") or form["sizes_advantage_over_shared"]
+    return (f"θ by subject {theta_text(form)}; {what} does not beat the shared term on held-out data "
+            f"({adv['gain']:.3g} [{adv['ci'][0]:.3g}, {adv['ci'][1]:.3g}])")

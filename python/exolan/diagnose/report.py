@@ -205,20 +205,20 @@ def _evidence_lines(f: dict) -> list[str]:
                    + (f" and the term of the subjects whose post-hoc θ clears alone by {_fmt(over.get('gain'), 3)} "
                       f"CI {_fmt(over.get('ci'), 3)} (both fitted {over.get('fitted', 'warm start')})" if over else ""))
     nt = f.get("subject_form_not_taken") or {}
+    said = f"θ by subject from {nt['method']}" if nt.get("method") else "post-hoc θ by subject"
     if nt.get("refused"):
-        said = f"θ by subject from {nt['method']}" if nt.get("method") else "post-hoc θ by subject"
         out.append(f"  - one term for every subject: the {said} ({by_subject(nt)}) differ, but "
                    f"{', '.join(nt['unphysical_subjects'])} as clearly on the side no physical size takes, and none "
                    "stands out from its mirror: the subjects' spread is something else the term's column carries")
     if nt.get("subjects"):
         th = by_subject(nt)
         adv = nt.get("advantage_over_shared") or {}
-        out.append(f"  - one term for every subject: the post-hoc θ by subject ({th}) asked for a term of "
+        out.append(f"  - one term for every subject: the {said} ({th}) asked for a term of "
                    f"{', '.join(nt['subjects'])} only, which did not beat the shared one ({_fmt(adv.get('gain'), 3)} "
                    f"CI {_fmt(adv.get('ci'), 3)}): the base absorbs a shared effect more in some subjects than others")
     if nt.get("sizes_advantage_over_shared"):
         adv = nt["sizes_advantage_over_shared"]
-        out.append(f"  - one size for every subject: a size per subject (post-hoc θ {by_subject(nt)}) did not beat the "
+        out.append(f"  - one size for every subject: a size per subject ({said} {by_subject(nt)}) did not beat the "
                    f"shared term ({_fmt(adv.get('gain'), 3)} CI {_fmt(adv.get('ci'), 3)})")
     sg = f.get("subject_gains") or {}
     if sg:
