@@ -51,7 +51,7 @@ from . import consistency, ident, parallel_filter, stats, wls
 from .candidates import LIBRARY, NESTS, rivals
 from .estimates import Z95, TermEstimate, ci_text as _ci_text, report_interval, term_estimate  # noqa: F401
 from .flat import exo_own
-from .workers import current
+from .workers import Workers, current
 
 
 @dataclass
@@ -348,9 +348,7 @@ def _test_all(probs: dict, accepted: dict, pool: list, masks, log) -> list:
     def one(e, j):
         log(e, j)
         return _test(probs[j].view(), accepted[j], e, masks) + (e, j)
-    jobs = [lambda e=e, j=j: one(e, j) for e, j in pool]
-    pool_ = current()
-    return pool_.map(jobs) if pool_ is not None else [job() for job in jobs]
+    return (current() or Workers()).map([lambda e=e, j=j: one(e, j) for e, j in pool])
 
 
 def _test(prob: ident.JointProblem, accepted: list, e: str, masks) -> tuple:
