@@ -307,6 +307,31 @@ def _drive_trial(subject: str, seed: int, **truth):
     return servo_trial(f"{subject}_d", subject=subject, seconds=15.0, seed=seed, **truth)
 
 
+def test_a_cross_fitted_error_holds_every_segment_out_once_and_never_fits_the_rows_it_scores():
+    """`JointProblem.cross_sq` (a subject form's held-out check): each fold of segments (`flat.folds`: 0 the
+    held-out ones) scored by the model refitted without it; on the held-out segments that is `held_sq` itself, and
+    a fold's scores do not move when its own torques are corrupted (the others' do)."""
+    from exolan.diagnose.flat import folds
+
+    flat = prepare([_drive_trial("S1", 11, viscous=200.0, coulomb=20.0, mass=95.0, offset=-3.0),
+                    _drive_trial("S2", 12, viscous=200.0, coulomb=20.0, mass=95.0, offset=-3.0)])
+    fold, seg = folds(flat), flat.segment.numpy()
+    assert np.all(fold[flat.held.numpy()] == 0) and set(np.unique(fold)) == {0, 1, 2, 3}
+    assert all(len(np.unique(fold[seg == k])) == 1 for k in np.unique(seg))       # a segment lies in one fold
+    res = physics.setup(flat, FITTED, [0])
+    prob = res._probs[0]
+    f = prob.fit(["viscous_damping", "coulomb_friction"], intervals=False)
+    e = prob.cross_sq(f)
+    held = prob.held
+    np.testing.assert_allclose(e[held], prob.held_sq(f), rtol=1e-9)
+    assert np.isfinite(e[prob.rows]).all() and np.isnan(e[~prob.rows]).all()
+    prob.y = prob.y.copy()
+    prob.y[fold == 2] += 50.0                               # fold 2's torques corrupted: only the others' fits see it
+    e2 = prob.cross_sq(f)
+    np.testing.assert_allclose(e2[prob.rows & (fold == 2)], e[prob.rows & (fold == 2)], rtol=1e-9)
+    assert np.mean(e2[prob.rows & (fold == 1)]) > 1.5 * np.mean(e[prob.rows & (fold == 1)])
+
+
 @pytest.mark.parametrize("viscous, coulomb, want", [
     ((150.0, 300.0), (20.0, 20.0), {"viscous_damping": "sizes"}),
     ((200.0, 200.0), (10.0, 25.0), {"coulomb_friction": "sizes"}),

@@ -157,6 +157,18 @@ def _segments(T: int, dt: float, seg_seconds: float, rng: np.random.Generator, e
     return seg, held_seg[seg] if nseg >= 2 else np.zeros(T, dtype=bool)
 
 
+def folds(flat: Flat, k: int = 4) -> np.ndarray:
+    """The cross-fitting fold of every row: 0 the held-out segments, 1..k−1 each trial's other segments in turn,
+    so that every segment is held out once (`physics_subjects`: a subject form judged on all the data)."""
+    seg, held, trial = flat.segment.numpy(), flat.held.numpy().astype(bool), flat.trial.numpy()
+    fold = np.zeros(len(seg), dtype=np.int64)
+    for t in np.unique(trial):
+        own = (trial == t) & ~held
+        _, rank = np.unique(seg[own], return_inverse=True)
+        fold[own] = 1 + rank % (k - 1)
+    return fold
+
+
 def prepare(trials: Sequence, seg_seconds: float = 2.0, every: int = 4, max_delay: float = 0.1,
             seed: int = 0) -> Flat:
     """Stack trials (DESIGN.md section 1 `Trial`s, duck-typed) into a `Flat`."""

@@ -2,18 +2,13 @@
 
 Why: a term fitted jointly with a learned base shares the data with a network that can take part of it (a
 linear drive's viscous and Coulomb friction came out 0.44x and 1.54x of their published values that way,
-issue 38). A base that cannot imitate a term sizes it without that trade: the parametric base below has no
-velocity-odd part, so no dissipation, lag or compliance can hide in it. This is identification as in the
+issue 38). A base that cannot imitate a term sizes it without that trade: the parametric base (`rigid_base`) has
+no velocity-odd part, so no dissipation, lag or compliance can hide in it. This is identification as in the
 robotics literature: parallel zero-phase low-pass of q and τ (scipy `sosfiltfilt`), q̇ and q̈ by central
 differences (`np.gradient`), weighted least squares on the training segments, intervals by a Newey-West (HAC)
 sandwich (statsmodels) over time, since the residuals are autocorrelated.
 
-Base (per joint equation, per subject where the data hold several): inertia q̈_k × (1, cos/sin of every
-revolute joint but the first: a serial chain's inertia depends on the distal angles), Coriolis/centripetal
-q̇_a q̇_b × (cos, sin) of those angles (two or more revolute joints), gravity cos/sin of every revolute angle and
-of the sums and differences of pairs (only where it can act: a prismatic axis gets none), a constant (the
-torque offset: `torque_bias`, absorbable), and with insoles the contact term f_v × (1, the same angle functions,
-x_cop) and the other leg's load. Nonlinear-in-parameter terms are sized by a grid over the nonlinear
+The base's columns: `rigid_base`. Nonlinear-in-parameter terms are sized by a grid over the nonlinear
 parameter with least squares inside (variable projection); their intervals are the HAC sandwich of the
 linearised model at the optimum. Terms and their tests live in `TERMS`.
 """
@@ -31,63 +26,12 @@ from scipy import stats as sps
 from ..extensions import COULOMB_EPS
 from . import wls
 from .parallel_filter import Signals
+from .rigid_base import base_columns
 from .shift import ShiftBasis, backlash_col, backlash_grid
 
 _BASIS_LOCK = threading.Lock()     # a shift basis is made once per joint, whichever thread asks first
 
 SLIDING = 3.0           # rows with |q̇| below SLIDING·ε are left out of the fit (`JointProblem`)
-
-
-# -- the parametric rigid-body base --------------------------------------------------------------------------
-
-def _angle_functions(q: np.ndarray, jt: tuple, distal_only: bool) -> list[np.ndarray]:
-    rev = [a for a, t in enumerate(jt) if t == "revolute"]
-    use = rev[1:] if distal_only else rev
-    out = []
-    for a in use:
-        out += [np.cos(q[:, a]), np.sin(q[:, a])]
-    if not distal_only:
-        for i, a in enumerate(rev):
-            for b in rev[i + 1:]:
-                for comb in (q[:, a] + q[:, b], q[:, a] - q[:, b]):
-                    out += [np.cos(comb), np.sin(comb)]
-    return out
-
-
-def base_columns(q, qd, qdd, sig: Signals, flat_forces: bool = True) -> tuple[np.ndarray, list[str]]:
-    """(N, p) regressor of one joint equation's rigid-body base (shared by every joint's equation: each joint
-    fits its own coefficients), with names. Interacted with subject dummies where there are several."""
-    jt = sig.joint_types
-    N, n = q.shape
-    one = np.ones(N)
-    distal = [one] + _angle_functions(q, jt, distal_only=True)
-    cols, names = [], []
-    for k in range(n):
-        for i, f in enumerate(distal):
-            cols.append(qdd[:, k] * f); names.append(f"qdd{k}*h{i}")
-    rev = [a for a, t in enumerate(jt) if t == "revolute"]
-    if len(rev) >= 2:
-        for a in range(n):
-            for b in range(a, n):
-                for i, f in enumerate(distal[1:]):
-                    cols.append(qd[:, a] * qd[:, b] * f); names.append(f"qd{a}qd{b}*h{i + 1}")
-    grav = _angle_functions(q, jt, distal_only=False)
-    for i, f in enumerate(grav):
-        cols.append(f); names.append(f"g{i}")
-    cols.append(one); names.append("const")
-    if flat_forces and np.nanmax(np.abs(sig.f_v)) > 0:
-        for i, f in enumerate([one] + grav):
-            cols.append(sig.f_v * f); names.append(f"fv*g{i}")
-        cols.append(sig.f_v * sig.x_cop); names.append("fv*xcop")
-        if np.nanmax(np.abs(sig.f_o)) > 0:
-            for i, f in enumerate([one] + grav):
-                cols.append(sig.f_o * f); names.append(f"fo*g{i}")
-    X = np.stack(cols, 1)
-    users = np.unique(sig.subject)
-    if len(users) > 1:      # every subject's own body: the base's coefficients per subject
-        X = np.concatenate([X * (sig.subject == u)[:, None] for u in users], 1)
-        names = [f"{u}:{nm}" for u in users for nm in names]
-    return X, names
 
 
 # -- candidate terms ------------------------------------------------------------------------------------------
@@ -211,7 +155,7 @@ class JointProblem:
         # fitted where the friction law's smoothing no longer matters (|q̇| ≥ 3ε, tanh(3) = 0.995): near rest the
         # data's own law (stiction, pre-sliding) is unknown and the model's tanh(q̇/ε) is a numerical choice
         moving = np.abs(np.nan_to_num(sig.qd[:, j])) >= SLIDING * COULOMB_EPS
-        self.train, self.held = rows & sig.train & moving, rows & sig.held
+        self.rows, self.train, self.held = rows, rows & sig.train & moving, rows & sig.held
         self.w = np.ones(len(self.y))
         self._cols: dict = {}
         self._grids: dict = {}      # effect -> its grid of ν (`grid`; `col` caches there only)
@@ -435,12 +379,39 @@ class JointProblem:
             f.est[e], f.se[e] = float(np.sum(w * th) / np.sum(w)), float(1.0 / math.sqrt(np.sum(w)))
         f.lags = L
 
+    def _split_design(self, f: Fit, effect: str | None, masks: list | None) -> tuple:
+        """`f`'s design (its ν fixed) with the linear term `effect`'s column split into one per row mask."""
+        X, names, off = self._design(f.terms, f.nu)
+        if masks is None:
+            return X, names, off
+        k = names.index(effect)
+        return np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1), names, off
+
+    def refitted(self, f: Fit, train: np.ndarray, effect: str | None = None, masks: list | None = None) -> np.ndarray:
+        """The prediction on every row of `f`'s model (its ν fixed; `effect` split by `masks` as in `fit_split`)
+        refitted on the rows `train` only (a cross-fitting fold's complement), this problem left as it was."""
+        v = self.view()
+        v.train, v._qr = train, {}
+        X, _, off = v._split_design(f, effect, masks)
+        return X @ v._wls(X[train], (v.y - off)[train], v._u(f.terms, f.nu)) + off
+
+    def cross_sq(self, f: Fit, effect: str | None = None, masks: list | None = None) -> np.ndarray:
+        """Squared error as `held_sq`'s, cross-fitted: every fold's usable rows (`Signals.fold`; 0 the held-out
+        segments) predicted by the model `refitted` without that fold; NaN elsewhere. Every segment is held out
+        once: four times the held-out rows alone (a subject form judged by them: `physics_subjects`)."""
+        fold = self.sig.fold if self.sig.fold is not None else (~self.sig.held).astype(np.int64)
+        out = np.full(len(self.y), np.nan)
+        for k in np.unique(fold[self.rows]):
+            ev, tr = self.rows & (fold == k), self.train & (fold != k)
+            if tr.sum() >= 2 * self.Xb.shape[1]:        # else too few rows left to refit the base: the fold sits out
+                r = (self.sig.tau_raw[ev, self.j] - self.refitted(f, tr, effect, masks)[ev]) / self.sig.mass[ev]
+                out[ev] = r * r
+        return out
+
     def fit_split(self, f: Fit, effect: str, masks: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, Fit]:
         """`f` with the linear term `effect`'s column split into one column per row mask (a subject's rows, or a
         group of subjects'): the coefficients and HAC SEs of the split columns, and the fit (its `pred`)."""
-        X, names, off = self._design(f.terms, f.nu)
-        k = names.index(effect)
-        X = np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1)
+        X, names, off = self._split_design(f, effect, masks)
         tr, u = self.train, self._u(f.terms, f.nu)
         th = self._wls(X[tr], (self.y - off)[tr], u)
         sub = list(range(X.shape[1] - len(masks), X.shape[1]))

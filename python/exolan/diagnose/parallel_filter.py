@@ -9,6 +9,7 @@ import numpy as np
 from scipy import signal
 
 from ..data import finite_runs
+from .flat import folds
 
 CUTOFF_HZ = 25.0        # default low-pass of q and τ: above a limb's or a drive's motion, below encoder noise
 
@@ -43,6 +44,7 @@ class Signals:
     side: np.ndarray | None = None      # (N, n) the side of a backlash gap (`Flat.side`), filtered and differentiated
     side_d: np.ndarray | None = None    # as q is: the limb's kinematics are q + (w/2) s and its derivatives
     side_dd: np.ndarray | None = None
+    fold: np.ndarray | None = None      # (N,) cross-fitting fold (`flat.folds`): 0 the held-out segments
 
     def lp(self, x: np.ndarray) -> np.ndarray:
         """x (N,) or (N, k) low-passed with the parallel filter per finite run (NaN kept where it is)."""
@@ -135,5 +137,5 @@ def signals(flat, cutoff_hz: float = CUTOFF_HZ) -> Signals:
     # built from q̈ there (both filters in series) are not the recording's (measured: docs/DIAGNOSIS.md, "Filter edges")
     edge = run_edges(runs_all, N, pad1 + sig.sos[1])
     sig.ok = valid & np.isfinite(cols["q"]).all(1) & np.isfinite(sig.tau).all(1) & ~edge
-    sig.train, sig.held = sig.ok & ~held, sig.ok & held
+    sig.train, sig.held, sig.fold = sig.ok & ~held, sig.ok & held, folds(flat)
     return sig

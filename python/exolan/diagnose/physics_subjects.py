@@ -9,9 +9,11 @@ with HAC SEs. The rule is the learned path's (`subjects.subject_form`)
 applied to these fitted θ instead of post-hoc ones: the subjects must differ (Cochran's Q, p < 0.05), a subject
 carries the term where its θ has the physical sign and clears z = Φ⁻¹(1 − 0.025/S) (Bonferroni over the S
 subjects); some subjects only: a switch (the term on their trials, one θ); all of them: every subject at their
-own size. The form is taken only where it beats the shared term on the held-out segments (paired squared
-errors, block-bootstrap 95 % CI above 0). It changes how an accepted term is sized, not whether it is accepted:
-the family's significance budget is untouched.
+own size. The form is taken only where it beats the shared term on held-out data (paired squared errors,
+block-bootstrap 95 % CI above 0), cross-fitted so that every segment is held out once (`JointProblem.cross_sq`):
+the held-out segments alone, a quarter of the data, could not tell apart two subjects' sizes that the joint fit
+separates at 8 SEs (docs/DIAGNOSIS.md, "A subject form cross-fitted"). It changes how an accepted term is sized,
+not whether it is accepted: the family's significance budget is untouched.
 """
 from __future__ import annotations
 
@@ -64,8 +66,10 @@ def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, ro
                                         for k, u in enumerate(users)})
     else:
         return None
-    g = physics._held_gain(prob.held_sq(f), prob.held_sq(fit), n_boot)
-    out["advantage_over_shared"] = dict(gain=g["gain"], ci=g["ci"], scale="parametric base, unweighted")
+    e_shared, e_form = prob.cross_sq(f), prob.cross_sq(f, effect, masks if out["kind"] == "sizes" else [mask])
+    g = physics._held_gain(e_shared, e_form, n_boot)
+    out["advantage_over_shared"] = dict(gain=g["gain"], ci=g["ci"], rows=int(np.isfinite(e_shared - e_form).sum()),
+                                        scale="parametric base, unweighted, cross-fitted over every segment")
     if not g["ci"][0] > 0:      # kept shared, and the record says why (the report's "one term for every subject")
         adv = out.pop("advantage_over_shared")
         kept = {k: v for k, v in out.items() if k not in ("trials", "subject_of_trial")}
