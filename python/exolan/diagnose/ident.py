@@ -388,8 +388,8 @@ class JointProblem:
         return np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1), names, off
 
     def refitted(self, f: Fit, train: np.ndarray, effect: str | None = None, masks: list | None = None) -> np.ndarray:
-        """The prediction on every row of `f`'s model (its ν fixed; `effect` split by `masks` as in `fit_split`)
-        refitted on the rows `train` only (a cross-fitting fold's complement), this problem left as it was."""
+        """The prediction on every row of `f`'s model (its ν and the weights as fitted; `effect` split by `masks` as
+        in `fit_split`) refitted on the rows `train` only (a cross-fitting fold's complement), this problem as it was."""
         v = self.view()
         v.train, v._qr = train, {}
         X, _, off = v._split_design(f, effect, masks)
