@@ -387,24 +387,20 @@ class JointProblem:
         k = names.index(effect)
         return np.concatenate([np.delete(X, k, axis=1)] + [(X[:, k] * m)[:, None] for m in masks], 1), names, off
 
-    def refitted(self, f: Fit, train: np.ndarray, effect: str | None = None, masks: list | None = None) -> np.ndarray:
-        """The prediction on every row of `f`'s model (its ν and the weights as fitted; `effect` split by `masks` as
-        in `fit_split`) refitted on the rows `train` only (a cross-fitting fold's complement), this problem as it was."""
-        v = self.view()
-        v.train, v._qr = train, {}
-        X, _, off = v._split_design(f, effect, masks)
-        return X @ v._wls(X[train], (v.y - off)[train], v._u(f.terms, f.nu)) + off
-
     def cross_sq(self, f: Fit, effect: str | None = None, masks: list | None = None) -> np.ndarray:
         """Squared error as `held_sq`'s, cross-fitted: every fold's usable rows (`Signals.fold`; 0 the held-out
-        segments) predicted by the model `refitted` without that fold; NaN elsewhere. Every segment is held out
-        once: four times the held-out rows alone (a subject form judged by them: `physics_subjects`)."""
-        fold = self.sig.fold if self.sig.fold is not None else (~self.sig.held).astype(np.int64)
+        segments) predicted by `f`'s model (its ν and the weights as fitted; `effect` split by `masks` as in
+        `fit_split`) refitted without that fold; NaN elsewhere. Every segment is held out once: four times the
+        held-out rows alone (a subject form judged by them: `physics_subjects`). This problem is left as it was."""
+        X, _, off = self._split_design(f, effect, masks)
+        y, u, fold = self.y - off, self._u(f.terms, f.nu), self.sig.fold
+        v = self.view()             # one view: the shifted design made once, each fold's factorisation its own
         out = np.full(len(self.y), np.nan)
         for k in np.unique(fold[self.rows]):
             ev, tr = self.rows & (fold == k), self.train & (fold != k)
             if tr.sum() >= 2 * self.Xb.shape[1]:        # else too few rows left to refit the base: the fold sits out
-                r = (self.sig.tau_raw[ev, self.j] - self.refitted(f, tr, effect, masks)[ev]) / self.sig.mass[ev]
+                v.train, v._qr = tr, {}
+                r = (self.sig.tau_raw[ev, self.j] - (X @ v._wls(X[tr], y[tr], u) + off)[ev]) / self.sig.mass[ev]
                 out[ev] = r * r
         return out
 
