@@ -97,14 +97,8 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it():
     assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None
 
 
-def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path):
-    """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
-    term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
-    and compared there; the sizes start equal. The form taken is the extended model's fit (no third fit from
-    scratch), its estimates held in the model handed over, and the report says how the forms were compared.
-    Rules forced open: the sizes win; then the switch wins where the sizes' fit from scratch does not beat it, and
-    where it does but fails rule 5 against it."""
-    from exolan.diagnose import diagnose
+def _two_drives() -> list:
+    """Two subjects' linear drives, viscous damping 2 in S01 and 8 in S02."""
     from exolan.diagnose.synthetic import linear_drive
 
     trials = []
@@ -113,13 +107,27 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
         for k, t in enumerate(tr):
             t.subject, t.name = subj, f"{subj.lower()}_drive_{k}"
         trials += tr
+    return trials
 
-    def both_forms(model, flat, effect, j, sc):     # the proposal: S02 alone, or every subject at their size
-        users = ["S01", "S02"]
-        return dict(theta_by_subject={u: dict(theta=1.0 + i, se=0.1) for i, u in enumerate(users)},
-                    heterogeneity=dict(Q=50.0, df=1, p=1e-12), z_crit=2.24, subjects=["S02"],
-                    trials=np.array([float(m["subject"] == "S02") for m in flat.trial_meta]), users=users,
-                    subject_of_trial=np.array([users.index(m["subject"]) for m in flat.trial_meta]))
+
+def _both_forms(model, flat, effect, j, sc):     # a stub proposal: S02 alone, or every subject at their size
+    users = ["S01", "S02"]
+    return dict(theta_by_subject={u: dict(theta=1.0 + i, se=0.1) for i, u in enumerate(users)},
+                heterogeneity=dict(Q=50.0, df=1, p=1e-12), z_crit=2.24, subjects=["S02"],
+                trials=np.array([float(m["subject"] == "S02") for m in flat.trial_meta]), users=users,
+                subject_of_trial=np.array([users.index(m["subject"]) for m in flat.trial_meta]))
+
+
+def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_from_scratch(tmp_path):
+    """Where a term at every subject's own size and the same term switched to some subjects both beat the shared
+    term, the two forms are fitted from scratch (a warm start keeps what the base absorbed of the smaller size)
+    and compared there; the sizes start equal. The form taken is the extended model's fit (no third fit from
+    scratch), its estimates held in the model handed over, and the report says how the forms were compared.
+    Rules forced open: the sizes win; then the switch wins where the sizes' fit from scratch does not beat it, and
+    where it does but fails rule 5 against it."""
+    from exolan.diagnose import diagnose
+
+    trials = _two_drives()
 
     n = {}
 
@@ -149,7 +157,7 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
                 g = dict(g, forced=True) if sizes_win else dict(g, draws=None)
             return g
 
-        tools = Tools(subject_form=both_forms, user_improves=lambda before, after: True, invariance=rule5,
+        tools = Tools(subject_form=_both_forms, user_improves=lambda before, after: True, invariance=rule5,
                       fresh_fit=recorded, gain=gain,
                       above_noise=lambda g, sigma, seed=0, alpha=0.05: g.get("draws", 0) is not None)
         return diagnose(trials, out=out, quick=True, hidden=8, steps_base=150, steps_refit=60, physics_first=False,
@@ -184,6 +192,32 @@ def test_sizes_and_a_switch_that_both_beat_the_shared_term_are_compared_fitted_f
     (f,) = rep["findings"]
     assert f["subject_form"]["kind"] == "switch" and f["subjects"] == ["S02"]
     assert not f["subject_form"]["sizes_advantage_over_switch"]["task_invariance"]["passes"]
+
+
+def test_a_candidate_that_fails_its_rules_in_either_form_is_not_fitted_from_scratch_to_choose_one(tmp_path):
+    """Both forms beat the shared term, but the candidate fails rule 5 warm in either: whichever form the fits from
+    scratch chose, it would be rejected, so they are not made (two fits of ~1.5 min each in a 4-user world); the
+    switch stands for it and its record says the two forms were not compared."""
+    from exolan.diagnose import diagnose
+
+    fits = []
+
+    def recorded(flat, s, effects, init, start, confused=None):
+        m = refits.fresh_fit(flat, s, effects, init, start, confused=confused)
+        if effects:                 # not the term-free twins of the noise between optima
+            fits.append(init)
+        return m
+
+    tools = Tools(subject_form=_both_forms, user_improves=lambda before, after: True,
+                  invariance=lambda *a, **k: dict(invariance_rule(*a, **k), passes=False), fresh_fit=recorded,
+                  above_noise=lambda g, sigma, seed=0, alpha=0.05: True)
+    rep = diagnose(_two_drives(), out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
+                   physics_first=False, effects=("viscous_damping",), verbose=False, tools=tools)
+    assert fits == [] and rep["findings"] == []
+    (r,) = [r for r in rep["rejected"] if r["effect"] == "viscous_damping"]
+    form = r["subject_form"]
+    assert form["kind"] == "switch" and form["sizes_advantage_over_switch"]["compared"] is False
+    assert "not compared from scratch" in form["sizes_advantage_over_switch"]["why"]
 
 
 def test_a_sized_terms_value_by_subject_is_its_subjects_own():

@@ -60,12 +60,36 @@ def screened(ss, entry, effect: str, j: int) -> None:
 def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
     """Rules 1, 2, 4 and 5 for one candidate refitted warm with the base (in its subject form, where one is
     taken), at its share of the budget; the rescue where its warm refit identifies it but fails on its gain."""
-    c, s, t1 = LIBRARY[effect], ss.s, time.time()
-    ext = extend(ss.base, ss.flat, [(effect, j)], init=c.screen_init(sc), max_delay=s.max_delay)
-    refit(ext, ss.flat, s)
+    c, t1 = LIBRARY[effect], time.time()
+    ext = extend(ss.base, ss.flat, [(effect, j)], init=c.screen_init(sc), max_delay=ss.s.max_delay)
+    refit(ext, ss.flat, ss.s)
     e_user, e = ss.errors(ext)
-    ext, e_user, e = take_form(ss, entry, effect, j, sc, ext, e_user, e)
     level = ss.budget.single(looks(ss, effect))
+
+    def could_pass(model, model_user, model_e) -> bool:     # a form's warm fit judged alone: no fit from scratch
+        trial = blank_entry(effect, j, ss.flat, ss.subjects)
+        judge(ss, trial, effect, j, model, model_user, model_e, level)
+        return rules_pass(trial)
+
+    ext, e_user, e = take_form(ss, entry, effect, j, sc, ext, e_user, e, could_pass=could_pass)
+    judge(ss, entry, effect, j, ext, e_user, e, level)
+    entry.fit_seconds = round(time.time() - t1, 1)
+    ss.fitted[(effect, j)] = (ext, e)
+    est, ci, g, gu = entry["estimate"], entry["ci"], entry["decision_gain"], dict(
+        gain=entry["heldout_gain"], ci=entry["heldout_gain_ci"])
+    ss.log(f"{effect:18s} {ss.flat.joints[j]:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {gci(gu)} "
+           f"rel {entry['relative_gain']:.3f}; decision ({ss.scale}) {gci(g)}, level {100 * (1 - level):.2f} % "
+           f"({time.time() - t1:.0f} s)")
+    # the absorbed case only: the warm fit identifies the term (rule 4) and fails on its gain alone
+    if (looks(ss, effect) == 2 and "form" not in entry and entry.identifiable and
+            not (entry.passes_gain and entry.passes_floor)):
+        rescue(ss, entry, effect, j, sc, level)
+
+
+def judge(ss, entry, effect: str, j: int, ext, e_user, e, level: float) -> None:
+    """Rules 1, 2, 4 and 5 of one candidate's warm fit `ext` (user and decision errors `e_user`, `e`) at its
+    `level`, written on `entry`."""
+    c = LIBRARY[effect]
     g = ss.gain(ss.e_ref, e)                  # the decision's gain (its interval at 95 % for the report)
     gu = ss.gain(ss.e_ref_user, e_user)       # the user's
     pci = ss.tools.param_ci(ext, ss.flat, effect, j)
@@ -73,7 +97,7 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
     entry.update(pci=pci, rank=g["gain"], level=level, estimate=est, ci=ci, heldout_gain=gu["gain"],
                  heldout_gain_ci=gu["ci"], relative_gain=gu["rel"], relative_gain_ci=gu["rel_ci"], block=g["block"],
                  decision_gain=dict(gain=g["gain"], ci=g["ci"], scale=ss.scale, level=1 - level),
-                 identifiable=identifiable(effect, pci, s.max_delay), fit_seconds=round(time.time() - t1, 1))
+                 identifiable=identifiable(effect, pci, ss.s.max_delay))
     if c.shape is not None:
         entry.vs = float(ext.stribeck()[1][j].detach())
     # rule 1 at the candidate's level on the decision's scale, and the user's torque error must not grow
@@ -85,14 +109,12 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
     entry.task_invariance = ss.invariance(ss.e_ref - e, ext, effect, j)
     entry.passes_invariance = entry.task_invariance["passes"]
     entry.subject_gains = ss.subject_gains(ss.e_ref_user - e_user)
-    ss.fitted[(effect, j)] = (ext, e)
-    ss.log(f"{effect:18s} {ss.flat.joints[j]:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {gci(gu)} "
-           f"rel {gu['rel']:.3f}; decision ({ss.scale}) {gci(g)}, level {100 * (1 - level):.2f} % "
-           f"({time.time() - t1:.0f} s)")
-    # the absorbed case only: the warm fit identifies the term (rule 4) and fails on its gain alone
-    if (looks(ss, effect) == 2 and "form" not in entry and entry.identifiable and
-            not (entry.passes_gain and entry.passes_floor)):
-        rescue(ss, entry, effect, j, sc, level)
+
+
+def rules_pass(entry) -> bool:
+    """Rules 1, 2, 4 and 5 as `judge` wrote them (step 4's verdict adds rule 3's nulls for exo-driven terms)."""
+    return bool(entry["passes_gain"] and entry["passes_floor"] and entry["identifiable"] and
+                entry["passes_invariance"])
 
 
 def rescue(ss, entry, effect: str, j: int, sc: dict, level: float) -> None:
@@ -207,8 +229,7 @@ def verdicts(results: list) -> None:
         if "status" in entry:
             continue
         c = LIBRARY[entry["effect"]]
-        passes = bool(entry["passes_gain"] and entry["passes_floor"] and entry["identifiable"] and
-                      entry["passes_invariance"] and (entry.get("passes_null", True) if c.needs_exo else True))
+        passes = rules_pass(entry) and (entry.get("passes_null", True) if c.needs_exo else True)
         entry.passes = passes
         if c.kind == "absorbable":
             entry.update(status="absorbable", reason=(

@@ -214,11 +214,16 @@ def _sizes_or_switch(ss, effect: str, j: int, sc: dict, form: dict, tried: dict)
     return take
 
 
-def take_form(ss, entry, effect: str, j: int, sc: dict, ext, e_user, e) -> tuple:
+def take_form(ss, entry, effect: str, j: int, sc: dict, ext, e_user, e, could_pass=None) -> tuple:
     """The subject form of (effect, joint j), where the training rows propose one (`Tools.subject_form`) and its
     refit beats the shared term on held-out data beyond the refit noise (a shared effect that the base absorbed
     in some subjects more than in others gives the same post-hoc picture). Returns the model, user and decision
-    errors that stand for the candidate (the shared term's where no form is taken); records the form on `entry`."""
+    errors that stand for the candidate (the shared term's where no form is taken); records the form on `entry`.
+
+    Where both forms beat it, `_sizes_or_switch` chooses, from scratch where the base was fitted here: two fits,
+    made only where `could_pass(model, e_user, e)` (the candidate's own rules on a form's warm fit) holds for
+    either form. A candidate that fails in both forms fails in whichever is chosen, so no verdict moves; the
+    switch then stands for it (the nested form) and its record says the two were not compared."""
     form = ss.tools.subject_form(ss.ref, ss.flat, effect, j, sc)
     if form is None:
         return ext, e_user, e
@@ -231,7 +236,16 @@ def take_form(ss, entry, effect: str, j: int, sc: dict, ext, e_user, e) -> tuple
     tried, kinds = _try(ss, entry, effect, j, sc, form, e_user, e)
     take = [k for k in kinds if tried[k]["beats"]]
     if len(take) == 2:
-        take = _sizes_or_switch(ss, effect, j, sc, form, tried)
+        if ss.from_scratch and could_pass is not None and not any(
+                could_pass(tried[k]["model"], tried[k]["user"], tried[k]["err"]) for k in kinds):
+            take = ["switch"]
+            tried["switch"]["form"]["sizes_advantage_over_switch"] = dict(
+                compared=False, why="not compared from scratch: the candidate fails its rules in either form")
+            ss.log(f"{effect:18s} {name:9s} a size per subject and a term of {', '.join(form['subjects'])} only "
+                   "both beat the shared term, but the candidate fails its rules warm in either form: not "
+                   "compared from scratch")
+        else:
+            take = _sizes_or_switch(ss, effect, j, sc, form, tried)
     if take:
         t = tried[take[0]]
         f = t["form"]
