@@ -265,7 +265,7 @@ def _limit_lines(limits: dict) -> list[str]:
          "optimistic where the base absorbs part of the own variation too; a delay near its limit is also "
          "estimated short; `limits.gain_detection_limit`, `limits.delay_detection_limit`). Beyond them a term "
          "must still pass rule 3's future-torque nulls, which a real gain can fail where the exo torque copies "
-         "the joint torque closely (docs/DIAGNOSIS.md, \"Five more 4-user worlds\")." +
+         "the joint torque closely (docs/DIAGNOSIS.md, \"Seven more 4-user worlds\")." +
          (" The gain's limits here are measured, not computed: a known gain was written into the recorded joint "
           "torque, the base fitted again from its start and rule 3's own-variation test run on it as on the data; "
           "its held-out gain, scaled as θ², gives the gain at which the test would just pass "
