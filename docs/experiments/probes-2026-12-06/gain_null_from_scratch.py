@@ -2,7 +2,7 @@
 
 Rule 3's track-lag null for a gain, fitted from scratch: the gain on the recorded exo torque against the same on
 the exo torque LAG samples ahead, both with the networks fitted from scratch (the reference's recipe); held-out
-per-sample squared error, mass-normalised, unweighted; paired mean difference with a block bootstrap."""
+per-sample squared error, mass-normalised, unweighted; their paired gain (`rules.paired_gain`)."""
 import sys, time
 import numpy as np, torch
 from exolan.diagnose.settings import Settings
@@ -12,6 +12,7 @@ from exolan.diagnose.procedure import new_base
 from exolan.diagnose.refits import fresh_fit
 from exolan.diagnose.nulls import advanced
 from exolan.diagnose.fit import predict
+from exolan.diagnose.rules import paired_gain
 from exolan.diagnose.workers import Workers, running
 
 root, j, lag = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
@@ -32,9 +33,6 @@ print(f"fits {time.time() - t0:.0f} s; gain now {float(m_now.estimate('torque_ga
 m = flat.mass[held].numpy()[:, None]
 e_now = (((flat.tau[held] - predict(m_now, flat, held)).numpy() / m) ** 2).sum(1)
 e_fut = (((adv.tau[held] - predict(m_fut, adv, held)).numpy() / m) ** 2).sum(1)
-d = e_fut - e_now          # > 0: the gain on the recorded torque describes the held-out data better
-B, n = 200, len(d); L = 200
-rng = np.random.default_rng(0)
-starts = rng.integers(0, n - L, size=(B, n // L))
-boot = [d[(st[:, None] + np.arange(L)).ravel()].mean() for st in starts]
-print(f"now beats ahead by {d.mean():.3g} [{np.percentile(boot, 2.5):.3g}, {np.percentile(boot, 97.5):.3g}]")
+g = paired_gain(e_fut, e_now, s)     # > 0: the gain on the recorded torque describes the held-out data better
+print(f"now beats ahead by {g['gain']:.3g} [{g['ci'][0]:.3g}, {g['ci'][1]:.3g}] (unweighted, the diagnosis' block "
+      f"bootstrap, block {g['block']})")
