@@ -72,13 +72,12 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
         return rules_pass(trial)
 
     ext, e_user, e = take_form(ss, entry, effect, j, sc, ext, e_user, e, could_pass=could_pass)
-    judge(ss, entry, effect, j, ext, e_user, e, level)
+    g, gu = judge(ss, entry, effect, j, ext, e_user, e, level)
     entry.fit_seconds = round(time.time() - t1, 1)
     ss.fitted[(effect, j)] = (ext, e)
-    est, ci, g, gu = entry["estimate"], entry["ci"], entry["decision_gain"], dict(
-        gain=entry["heldout_gain"], ci=entry["heldout_gain_ci"])
+    est, ci = entry["estimate"], entry["ci"]
     ss.log(f"{effect:18s} {ss.flat.joints[j]:9s} est {est:.4g} ci [{ci[0]:.3g}, {ci[1]:.3g}] gain {gci(gu)} "
-           f"rel {entry['relative_gain']:.3f}; decision ({ss.scale}) {gci(g)}, level {100 * (1 - level):.2f} % "
+           f"rel {gu['rel']:.3f}; decision ({ss.scale}) {gci(g)}, level {100 * (1 - level):.2f} % "
            f"({time.time() - t1:.0f} s)")
     # the absorbed case only: the warm fit identifies the term (rule 4) and fails on its gain alone
     if (looks(ss, effect) == 2 and "form" not in entry and entry.identifiable and
@@ -86,9 +85,9 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
         rescue(ss, entry, effect, j, sc, level)
 
 
-def judge(ss, entry, effect: str, j: int, ext, e_user, e, level: float) -> None:
+def judge(ss, entry, effect: str, j: int, ext, e_user, e, level: float) -> tuple[dict, dict]:
     """Rules 1, 2, 4 and 5 of one candidate's warm fit `ext` (user and decision errors `e_user`, `e`) at its
-    `level`, written on `entry`."""
+    `level`, written on `entry`. Returns the decision's and the user's paired gains (for the log)."""
     c = LIBRARY[effect]
     g = ss.gain(ss.e_ref, e)                  # the decision's gain (its interval at 95 % for the report)
     gu = ss.gain(ss.e_ref_user, e_user)       # the user's
@@ -109,6 +108,7 @@ def judge(ss, entry, effect: str, j: int, ext, e_user, e, level: float) -> None:
     entry.task_invariance = ss.invariance(ss.e_ref - e, ext, effect, j)
     entry.passes_invariance = entry.task_invariance["passes"]
     entry.subject_gains = ss.subject_gains(ss.e_ref_user - e_user)
+    return g, gu
 
 
 def rules_pass(entry) -> bool:
