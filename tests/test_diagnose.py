@@ -268,7 +268,7 @@ def test_clean_world_finds_nothing(tmp_path):
     delays = rep["detection_limits"]["actuation_delay"]
     assert set(delays) == {"hip", "knee"} and all(0 < v["d_limit"] < 0.1 for v in delays.values())
     assert all("method" not in v for v in delays.values()) and "ms written into the data" not in md
-    assert "What these data cannot show" in md and "a delay shows above d" in md
+    assert "What these data cannot show" in md and "a delay can show only above d" in md
     assert rep["data"]["torque_unit"] == "N m/kg" and "held-out torque MSE / mass² [(N m/kg)²]" in md
 
 

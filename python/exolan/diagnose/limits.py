@@ -274,10 +274,10 @@ def all_limits(flat: Flat, s: Settings, base_start, ref, held: torch.Tensor, w_h
                     f"recovered as {1e3 * v['recovered_d']:.3g} ms, held-out gain {v['injected_gain']:.3g} "
                     f"[{v['injected_gain_ci'][0]:.3g}, {v['injected_gain_ci'][1]:.3g}] ({time.time() - t1:.0f} s)")
     for name, v in limits["torque_gain"].items():
-        log(s, f"torque gain on {name}: detectable below k ≈ {v['k_below']:.3g} or above {v['k_above']:.3g} (the "
+        log(s, f"torque gain on {name}: not detectable between k ≈ {v['k_below']:.3g} and {v['k_above']:.3g} (the "
                 f"copy of the joint torque is {100 * v['copy_share']:.0f} % of the exo torque's variance)")
     for name, v in limits["actuation_delay"].items():
-        log(s, f"actuation delay on {name}: detectable above d ≈ {1e3 * v['d_limit']:.3g} ms" if math.isfinite(
+        log(s, f"actuation delay on {name}: not detectable below d ≈ {1e3 * v['d_limit']:.3g} ms" if math.isfinite(
             v["d_limit"]) else f"actuation delay on {name}: no delay up to {1e3 * v['injected_d']:.3g} ms shows")
 
     return limits

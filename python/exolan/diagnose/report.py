@@ -265,7 +265,9 @@ def _limit_lines(limits: dict) -> list[str]:
          "optimistic where the base absorbs part of the own variation too; a delay near its limit is also "
          "estimated short; `limits.gain_detection_limit`, `limits.delay_detection_limit`). Beyond them a term "
          "must still pass rule 3's future-torque nulls, which a real gain can fail where the exo torque copies "
-         "the joint torque closely (docs/DIAGNOSIS.md, \"Seven more 4-user worlds\")." +
+         "the joint torque closely (docs/DIAGNOSIS.md, \"Seven more 4-user worlds\"), and a size beyond them can "
+         "still be missed: the limits say what cannot show, not what will (a knee gain of 0.6 beside a computed "
+         "0.682 was; docs/DIAGNOSIS.md, \"Four more 4-user worlds and a gain below 1\")." +
          (" The gain's limits here are measured, not computed: a known gain was written into the recorded joint "
           "torque, the base fitted again from its start and rule 3's own-variation test run on it as on the data; "
           "its held-out gain, scaled as θ², gives the gain at which the test would just pass "
@@ -275,7 +277,7 @@ def _limit_lines(limits: dict) -> list[str]:
           "(τ_e(t) − τ_e(t − d)), the base fitted again, the delay term refitted on it and held to rules 1 and 2."
           if measured_d else ""), "",
          "| joint | exo torque rms [N m] | share that copies the joint torque | own variation rms [N m] | "
-         "a gain shows below k = | or above k = | a delay shows above d = [ms] |",
+         "a gain can show only below k = | or only above k = | a delay can show only above d = [ms] |",
          "|---|---|---|---|---|---|---|"]
     for j in list(dict.fromkeys(list(gain) + list(delay))):
         v = gain.get(j) or delay.get(j)
