@@ -266,8 +266,8 @@ def _limit_lines(limits: dict) -> list[str]:
          "estimated short; `limits.gain_detection_limit`, `limits.delay_detection_limit`). Beyond them a term "
          "must still pass rule 3's future-torque nulls, which a real gain can fail where the exo torque copies "
          "the joint torque closely (docs/DIAGNOSIS.md, \"Seven more 4-user worlds\"), and a size beyond them can "
-         "still be missed: the limits say what cannot show, not what will (a knee gain of 0.6 beside a computed "
-         "0.682 was; docs/DIAGNOSIS.md, \"Four more 4-user worlds and a gain below 1\")." +
+         "still be missed: the limits say what cannot show, not what will (a knee gain of 0.6, beyond a computed "
+         "0.682, was missed; docs/DIAGNOSIS.md, \"Four more 4-user worlds and a gain below 1\")." +
          (" The gain's limits here are measured, not computed: a known gain was written into the recorded joint "
           "torque, the base fitted again from its start and rule 3's own-variation test run on it as on the data; "
           "its held-out gain, scaled as θ², gives the gain at which the test would just pass "
