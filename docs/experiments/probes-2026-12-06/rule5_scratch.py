@@ -1,5 +1,6 @@
 """Probe: rule 5 (task invariance) of a candidate judged on its warm refit (as step 2 does) and on its fit from
-scratch against the reference (the term-free base with the same recipe). Usage: python rule5_scratch.py W EFFECT J INIT"""
+scratch against the reference (the term-free base with the same recipe), and the unweighted held-out MSE of the
+reference, the warm refit and the fit from scratch per joint and task. Usage: python rule5_scratch.py W EFFECT J INIT"""
 import sys, time
 import numpy as np, torch
 from exolan.diagnose.settings import Settings
@@ -11,6 +12,7 @@ from exolan.diagnose.export import extend
 from exolan.diagnose.refits import refit, fresh_fit
 from exolan.diagnose.procedure import refit_noise
 from exolan.diagnose.candidates import LIBRARY
+from exolan.diagnose.fit import sq_errors
 
 root, effect, j, v0 = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
 s = Settings()
@@ -39,3 +41,9 @@ with running(w):
               f"; rest {inv['gain_rest']:.3g} [{inv['ci_rest'][0]:.3g}, {inv['ci_rest'][1]:.3g}]; passes {inv['passes']}"
               f"; θ by task " + ", ".join(f"{k} {v['estimate']:.3g}" for k, v in inv.get('theta_by_group', {}).items()),
               flush=True)
+    # per joint and task: the unweighted held-out squared error of the reference, warm and from-scratch fits
+    E = {nm: sq_errors(m, flat, ss.held) for nm, m in (("ref", ss.ref), ("warm", warm), ("scratch", fresh))}
+    for task in np.unique(ss.groups):
+        k = ss.groups == task
+        print(f"{task:14s} " + "; ".join(f"{flat.joints[jj]}: ref {E['ref'][k, jj].mean():.3g}, warm "
+              f"{E['warm'][k, jj].mean():.3g}, scratch {E['scratch'][k, jj].mean():.3g}" for jj in range(flat.n)))
