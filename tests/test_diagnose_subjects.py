@@ -11,6 +11,7 @@ from exolan.diagnose.export import extend
 from exolan.diagnose.flat import prepare
 from exolan.diagnose import refits
 from exolan.diagnose.rules import invariance_rule, paired_gain
+from exolan.diagnose.inference import param_ci
 from exolan.diagnose.session import Tools
 
 from diagnose_helpers import leg_pair
@@ -208,12 +209,19 @@ def test_a_candidate_that_fails_its_rules_in_either_form_is_not_fitted_from_scra
             fits.append(init)
         return m
 
+    sized = []                      # the warm fits whose parameter was sized: each form judged once
+
+    def counted_ci(model, flat, effect, j):
+        sized.append(id(model))
+        return param_ci(model, flat, effect, j)
+
     tools = Tools(subject_form=_both_forms, user_improves=lambda before, after: True,
                   invariance=lambda *a, **k: dict(invariance_rule(*a, **k), passes=False), fresh_fit=recorded,
-                  above_noise=lambda g, sigma, seed=0, alpha=0.05: True)
+                  above_noise=lambda g, sigma, seed=0, alpha=0.05: True, param_ci=counted_ci)
     rep = diagnose(_two_drives(), out=tmp_path, quick=True, hidden=8, steps_base=150, steps_refit=60,
                    physics_first=False, effects=("viscous_damping",), verbose=False, tools=tools)
     assert fits == [] and rep["findings"] == []
+    assert len(sized) == 2 and len(set(sized)) == 2     # the switch taken is not judged again
     (r,) = [r for r in rep["rejected"] if r["effect"] == "viscous_damping"]
     form = r["subject_form"]
     assert form["kind"] == "switch" and form["sizes_advantage_over_switch"]["compared"] is False

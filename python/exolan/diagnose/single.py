@@ -66,13 +66,15 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
     e_user, e = ss.errors(ext)
     level = ss.budget.single(looks(ss, effect))
 
+    judged = {}    # id(model) -> judge's fields and gains: the form taken is not judged a second time
+
     def could_pass(model, model_user, model_e) -> bool:     # a form's warm fit judged alone: no fit from scratch
-        trial = blank_entry(effect, j, ss.flat, ss.subjects)
-        judge(ss, trial, effect, j, model, model_user, model_e, level)
-        return rules_pass(trial)
+        judged[id(model)] = judge(ss, effect, j, model, model_user, model_e, level)
+        return rules_pass(judged[id(model)][0])
 
     ext, e_user, e = take_form(ss, entry, effect, j, sc, ext, e_user, e, could_pass=could_pass)
-    g, gu = judge(ss, entry, effect, j, ext, e_user, e, level)
+    verdict, g, gu = judged.get(id(ext)) or judge(ss, effect, j, ext, e_user, e, level)
+    entry.update(**verdict)
     entry.fit_seconds = round(time.time() - t1, 1)
     ss.fitted[(effect, j)] = (ext, e)
     est, ci = entry["estimate"], entry["ci"]
@@ -85,30 +87,31 @@ def fit_candidate(ss, entry, effect: str, j: int, sc: dict) -> None:
         rescue(ss, entry, effect, j, sc, level)
 
 
-def judge(ss, entry, effect: str, j: int, ext, e_user, e, level: float) -> tuple[dict, dict]:
+def judge(ss, effect: str, j: int, ext, e_user, e, level: float) -> tuple[dict, dict, dict]:
     """Rules 1, 2, 4 and 5 of one candidate's warm fit `ext` (user and decision errors `e_user`, `e`) at its
-    `level`, written on `entry`. Returns the decision's and the user's paired gains (for the log)."""
+    `level`. Returns the verdict's fields (for `Verdict.update`) and the decision's and the user's paired gains
+    (for the log)."""
     c = LIBRARY[effect]
     g = ss.gain(ss.e_ref, e)                  # the decision's gain (its interval at 95 % for the report)
     gu = ss.gain(ss.e_ref_user, e_user)       # the user's
     pci = ss.tools.param_ci(ext, ss.flat, effect, j)
     est, ci = c.report_param(pci)
-    entry.update(pci=pci, rank=g["gain"], level=level, estimate=est, ci=ci, heldout_gain=gu["gain"],
-                 heldout_gain_ci=gu["ci"], relative_gain=gu["rel"], relative_gain_ci=gu["rel_ci"], block=g["block"],
-                 decision_gain=dict(gain=g["gain"], ci=g["ci"], scale=ss.scale, level=1 - level),
-                 identifiable=identifiable(effect, pci, ss.s.max_delay))
+    v = dict(pci=pci, rank=g["gain"], level=level, estimate=est, ci=ci, heldout_gain=gu["gain"],
+             heldout_gain_ci=gu["ci"], relative_gain=gu["rel"], relative_gain_ci=gu["rel_ci"], block=g["block"],
+             decision_gain=dict(gain=g["gain"], ci=g["ci"], scale=ss.scale, level=1 - level),
+             identifiable=identifiable(effect, pci, ss.s.max_delay))
     if c.shape is not None:
-        entry.vs = float(ext.stribeck()[1][j].detach())
+        v["vs"] = float(ext.stribeck()[1][j].detach())
     # rule 1 at the candidate's level on the decision's scale, and the user's torque error must not grow
-    entry.passes_gain = bool(ss.passes_at(g, level) and gu["gain"] > 0)
-    entry.passes_floor = ss.above_noise(g, alpha=level)
-    if c.linear and g["gain"] > 0 and not (entry.passes_gain and entry.passes_floor):
-        entry.size_limit = size_limit(g, ss.sigma_r, abs(est - c.neutral), level)
+    v["passes_gain"] = bool(ss.passes_at(g, level) and gu["gain"] > 0)
+    v["passes_floor"] = ss.above_noise(g, alpha=level)
+    if c.linear and g["gain"] > 0 and not (v["passes_gain"] and v["passes_floor"]):
+        v["size_limit"] = size_limit(g, ss.sigma_r, abs(est - c.neutral), level)
     # rule 5 for every term, exo-driven ones included (a clean world's hip "delay" rested on two tasks)
-    entry.task_invariance = ss.invariance(ss.e_ref - e, ext, effect, j)
-    entry.passes_invariance = entry.task_invariance["passes"]
-    entry.subject_gains = ss.subject_gains(ss.e_ref_user - e_user)
-    return g, gu
+    v["task_invariance"] = ss.invariance(ss.e_ref - e, ext, effect, j)
+    v["passes_invariance"] = v["task_invariance"]["passes"]
+    v["subject_gains"] = ss.subject_gains(ss.e_ref_user - e_user)
+    return v, g, gu
 
 
 def rules_pass(entry) -> bool:
