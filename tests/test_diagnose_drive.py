@@ -105,6 +105,26 @@ def test_physics_first_sizes_one_friction_without_the_other(effect):
     assert abs(res.estimates[(effect, 0)].estimate / want - 1) <= 0.10, msg
 
 
+def test_noise_above_the_fits_band_does_not_hide_a_small_friction():
+    """A coarse encoder (0.1 mm) under the position loop's derivative puts tens of N of jitter above the filter's
+    cut-off into the recorded force, which no model predicts. A term's held-out gain is judged in the band the
+    fit is made in: against the recorded force, a Coulomb friction of 2.5-4 N was significant (p < 1e-37) but its
+    held-out interval was some ±15 N wide, and it was rejected (4 draws of 4); the viscous term then took its
+    place (+6 to +8 %). Clean draws with the same encoder find nothing."""
+    seed = int(np.random.default_rng().integers(10_000))
+    rng = np.random.default_rng(seed)
+    truth = dict(_draw(rng), coulomb=float(rng.uniform(2.5, 4.0)))
+    res = physics.identify(prepare([servo_trial("d", seed=seed, encoder_step=1e-4, **truth)]), FITTED, [0])
+    msg = f"seed {seed}, truth {truth}: {res.summary(('x',))}"
+    assert sorted(e for e, _ in res.accepted) == ["coulomb_friction", "viscous_damping"], msg
+    assert abs(res.estimates[("viscous_damping", 0)].estimate / truth["viscous"] - 1) <= 0.10, msg
+    assert abs(res.estimates[("coulomb_friction", 0)].estimate / truth["coulomb"] - 1) <= 0.10, msg
+    clean = dict(truth, viscous=0.0, coulomb=0.0)
+    res = physics.identify(prepare([servo_trial("c", seed=seed, seconds=10.0, encoder_step=1e-4, **clean)]),
+                           FITTED, [0])
+    assert res.accepted == [], f"seed {seed}, clean: {res.summary(('x',))}"
+
+
 def test_hac_of_a_subset_is_the_block_of_the_full_sandwich():
     """Frisch-Waugh-Lovell: partialling the other columns out gives the same coefficients and HAC SEs as the
     full regression's (statsmodels on all columns)."""

@@ -400,7 +400,7 @@ class JointProblem:
             ev, tr = self.rows & (fold == k), self.train & (fold != k)
             if tr.sum() >= 2 * self.Xb.shape[1]:        # else too few rows left to refit the base: the fold sits out
                 v.train, v._qr = tr, {}
-                r = (self.sig.tau_raw[ev, self.j] - (X @ v._wls(X[tr], y[tr], u) + off)[ev]) / self.sig.mass[ev]
+                r = (self.sig.tau[ev, self.j] - (X @ v._wls(X[tr], y[tr], u) + off)[ev]) / self.sig.mass[ev]
                 out[ev] = r * r
         return out
 
@@ -434,11 +434,14 @@ class JointProblem:
         coef, se, _ = self._hac(Xs[tr], (self.y - off)[tr], sub, self._u(f.terms, f.nu))
         return center + coef, se, trials
 
-    def held_sq(self, f: Fit, rows: np.ndarray | None = None) -> np.ndarray:
-        """Squared error against the recorded (unfiltered) τ, mass-normalised, on the held-out rows (or `rows`:
-        NaN where the filtered signals are not usable)."""
+    def held_sq(self, f: Fit, rows: np.ndarray | None = None, recorded: bool = False) -> np.ndarray:
+        """Squared error, mass-normalised, on the held-out rows (or `rows`: NaN where the filtered signals are not
+        usable): against τ through the parallel filter, the band the fit was made in (a term's held-out gain
+        between two parametric fits: the recording's noise above the cut-off, which neither model can predict,
+        only widens its interval), or with `recorded` against the recorded τ (the user's error, and the gate's
+        comparison with the learned base, whose predictions are not band-limited)."""
         sel = self.held if rows is None else rows
-        r = (self.sig.tau_raw[sel, self.j] - f.pred[sel]) / self.sig.mass[sel]
+        r = ((self.sig.tau_raw if recorded else self.sig.tau)[sel, self.j] - f.pred[sel]) / self.sig.mass[sel]
         return r * r
 
     def set_weights(self, f: Fit):

@@ -204,7 +204,7 @@ def saturated_held(res: PhysicsResult, flat) -> dict[int, np.ndarray]:
     out = {}
     for j, prob in res._probs.items():
         lin = [x for x, jj in res._cands if jj == j and ident.TERMS[x].grid is None]
-        out[j] = prob.held_sq(prob.fit(lin, intervals=False), held_idx)
+        out[j] = prob.held_sq(prob.fit(lin, intervals=False), held_idx, recorded=True)
     return out
 
 
@@ -333,7 +333,7 @@ def final_fit(res: PhysicsResult, flat, j: int, terms: list, n_boot: int) -> Non
         res.term_gain[(e, j)] = gains[e]
         res.term_rows[(e, j)] = prob.held_sq(withouts[e], held_idx) - prob.held_sq(f, held_idx)
     res.base[flat.joints[j]] = _base_sizes(prob, f)
-    res.e_held[j] = prob.held_sq(f, held_idx)
+    res.e_held[j] = prob.held_sq(f, held_idx, recorded=True)
     sel = prob.held
     y = prob.sig.tau_raw[sel, j]
     mse = float(np.mean((y - f.pred[sel]) ** 2))

@@ -106,7 +106,7 @@ def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -
         e = max(forms, key=lambda x: forms[x]["advantage_over_shared"]["gain"])
         form = forms[e]
         res.forms[(e, j)] = form
-        res.e_held[j] = prob.held_sq(form["fit"], res.held_rows)
+        res.e_held[j] = prob.held_sq(form["fit"], res.held_rows, recorded=True)
         if log:
             what = (f"{', '.join(form['subjects'])} only" if form["kind"] == "switch" else
                     "every subject at their own size: " + ", ".join(
