@@ -14,7 +14,8 @@ Rule, in plain words (the report states it):
    α/(m − r), α = 5 %: the family-wise level of every accept decision together is α. Where it fails, selection
    stops.
 3. The held-out check can only remove a term: the model with it must beat the model without it on the held-out
-   segments (paired squared errors, block-bootstrap 95 % CI above 0). So can the recordings' check
+   segments (paired squared errors against τ through the parallel filter, the band the fit is made in,
+   block-bootstrap 95 % CI above 0). So can the recordings' check
    (`consistency`): fitted trial by trial, the term's 95 % prediction interval for a new recording must lie on the
    physical side of no effect — a constant of the joint, not a shape of the base's misfit. A term whose column is
    the exo torque (a gain) must also show on the controller's own variation (`own_variation`).
@@ -90,7 +91,7 @@ class PhysicsResult:
             method=("parametric rigid-body base + candidate terms, weighted LS on the training segments, HAC "
                     f"(Newey-West) intervals; zero-phase low-pass {self.cutoff_hz:g} Hz and central differences; "
                     f"forward selection with Holm's thresholds α/(m − r), α = {self.alpha}, m = {self.family}; a "
-                    "term is taken only with a held-out gain, as a constant across recordings (three or more), inside "
+                    "term is taken only with a held-out gain (in the fit's band), as a constant across recordings (three or more), inside "
                     "its domain, and (a torque gain) on the controller's own variation alone too"),
             accepted=[f"{e}:{joints[j]}" for e, j in self.accepted],
             estimates={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.estimates.items()},
