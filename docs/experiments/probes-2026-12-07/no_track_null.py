@@ -1,6 +1,7 @@
 """Probe: the diagnosis of a slow-suite-shaped world (2 users x walk, squat, calisthenics, turn x 16 s, the tests'
 settings) with rule 3's tracking-lag null for a gain left out (`nulls.track_lag` patched to the residual's lag in
-this process only). argv: NAME SEED [EFFECT ...]; the world is simulated under /tmp/s33/NAME once. Reads no truth."""
+this process only). argv: NAME SEED [EFFECT ...]; the world is simulated under /tmp/s33/NAME once; or WORLD_DIR OUT: that world at
+the CLI's defaults. Reads no truth."""
 import sys
 sys.path.insert(0, "/work/main/tests")
 from pathlib import Path
@@ -12,6 +13,9 @@ def patched(ss, entry):
     nulls.track_lag = lambda flat, j, max_lag=40: nulls.leak_lag(ss.ref, flat, j)
     return orig(ss, entry)
 nulls.nulls_of = patched
+if Path(sys.argv[1]).is_dir():                 # an existing world: the CLI's defaults, as `exolan diagnose W --out D`
+    from exolan.cli import main
+    sys.exit(main(["diagnose", sys.argv[1], "--out", sys.argv[2]]))
 name, seed, eff = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
 root = Path(f"/tmp/s33/{name}")
 if not root.exists():
