@@ -70,12 +70,14 @@ def leak_lag(model, flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) -> 
     return future_peak(r, flat.tau_e[tr, j], min_lag, max_lag)
 
 
-def track_lag(flat: Flat, j: int, max_lag: int = 40) -> int:
-    """Future lag (samples, ≥ 1) at which the exo torque of joint j copies the recorded joint torque best: the
-    assistive controller's tracking lag. A lag-free term on the exo torque (a gain) that only rescales the
-    joint's own torque does as well from the exo torque taken there."""
+def track_lag(flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) -> int:
+    """Future lag (samples, min_lag..max_lag) at which the exo torque of joint j copies the recorded joint torque
+    best: the assistive controller's tracking lag. A lag-free term on the exo torque (a gain) that only rescales
+    the joint's own torque does as well from the exo torque taken there. No nearer than the residual's null
+    (`leak_lag`): a torque taken a sample or two ahead is nearly the present one, a null a real gain cannot beat
+    either (measured: docs/DIAGNOSIS.md, "Noise above the fit's band", the slow suite's hip gain 9410)."""
     tr = flat.index("train")[:40000]
-    return future_peak(flat.tau[tr, j], flat.tau_e[tr, j], 1, max_lag)
+    return future_peak(flat.tau[tr, j], flat.tau_e[tr, j], min_lag, max_lag)
 
 
 def on_own_variation(base, flat: Flat, j: int, init: dict, e_ref: np.ndarray, held: torch.Tensor,
