@@ -63,19 +63,23 @@ def future_peak(x: torch.Tensor, tau_e: torch.Tensor, min_lag: int, max_lag: int
     return int(-lags[sel][np.argmax(vals[sel])]) if sel.any() else min_lag
 
 
-def leak_lag(model, flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) -> int:
+# a future null's nearest lag (samples): a torque taken a sample or two ahead is nearly the present one, a null
+# that a real term cannot beat either (measured: docs/DIAGNOSIS.md, "Noise above the fit's band", hip gain 9410)
+MIN_FUTURE_LAG = 5
+
+
+def leak_lag(model, flat: Flat, j: int, min_lag: int = MIN_FUTURE_LAG, max_lag: int = 40) -> int:
     """Future lag (samples) at which the exo torque of joint j correlates most with the training residual."""
     tr = flat.index("train")[:40000]
     r = flat.tau[tr, j] - predict(model, flat, tr)[:, j]
     return future_peak(r, flat.tau_e[tr, j], min_lag, max_lag)
 
 
-def track_lag(flat: Flat, j: int, min_lag: int = 5, max_lag: int = 40) -> int:
+def track_lag(flat: Flat, j: int, min_lag: int = MIN_FUTURE_LAG, max_lag: int = 40) -> int:
     """Future lag (samples, min_lag..max_lag) at which the exo torque of joint j copies the recorded joint torque
     best: the assistive controller's tracking lag. A lag-free term on the exo torque (a gain) that only rescales
     the joint's own torque does as well from the exo torque taken there. No nearer than the residual's null
-    (`leak_lag`): a torque taken a sample or two ahead is nearly the present one, a null a real gain cannot beat
-    either (measured: docs/DIAGNOSIS.md, "Noise above the fit's band", the slow suite's hip gain 9410)."""
+    (`leak_lag`), for the same reason (`MIN_FUTURE_LAG`)."""
     tr = flat.index("train")[:40000]
     return future_peak(flat.tau[tr, j], flat.tau_e[tr, j], min_lag, max_lag)
 

@@ -91,8 +91,9 @@ class PhysicsResult:
             method=("parametric rigid-body base + candidate terms, weighted LS on the training segments, HAC "
                     f"(Newey-West) intervals; zero-phase low-pass {self.cutoff_hz:g} Hz and central differences; "
                     f"forward selection with Holm's thresholds α/(m − r), α = {self.alpha}, m = {self.family}; a "
-                    "term is taken only with a held-out gain (in the fit's band), as a constant across recordings (three or more), inside "
-                    "its domain, and (a torque gain) on the controller's own variation alone too"),
+                    "term is taken only with a held-out gain (in the fit's band), as a constant across recordings "
+                    "(three or more), inside its domain, and (a torque gain) on the controller's own variation alone "
+                    "too"),
             accepted=[f"{e}:{joints[j]}" for e, j in self.accepted],
             estimates={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.estimates.items()},
             cross_check={f"{e}:{joints[j]}": v.to_json() for (e, j), v in self.cross.items()},

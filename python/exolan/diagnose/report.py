@@ -49,8 +49,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    (the torque error you see, reported as "held-out gain") must be above 0 too;
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
    taken from the future (at the lag ≥ 25 ms where it correlates most with the residual; a gain also at the
-   controller's tracking lag, no nearer than 25 ms either): the future exo torque cannot act now but shares the assistive controller's
-   correlation with the human torque; a gain must also show in the controller's own variation (the exo torque
+   controller's tracking lag, no nearer than 25 ms either): the future exo torque cannot act now but shares the
+   assistive controller's correlation with the human torque; a gain must also show in the controller's own variation (the exo torque
    less its copy of the joint torque, the copy being its fit on the joint torque's recent past): the same term
    on that variation alone must beat the reference beyond the refit noise, with its k on the same side of 1 as
    the whole term's, since a real gain rescales it too;
