@@ -1,9 +1,9 @@
 """Orchestration of the paper's studies (`exolan reproduce`): planning, the real-data split, resumable
 sweeps, local process pool vs serial vs Ray giving the same numbers, and the report's content.
 
-Most tests use a stand-in backend (defined here: a tiny synthetic world and closed-form "models" with
-the documented model interface) so that the orchestration is exercised in seconds; the real models are
-exercised by `test_reproduce_real.py`."""
+The tests use a stand-in backend (`standin.py`: a tiny synthetic world and closed-form "models" with the
+documented model interface) so that the orchestration is exercised in seconds; the real models are exercised by
+`test_reproduce_real.py`, the forward-dynamics metrics by `test_rollout_metrics.py`."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,140 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from exolan import reproduce as R
-from exolan.data import Trial
+from standin import fake_world
 
 HERE = Path(__file__).resolve().parent
-STANDIN = "test_reproduce:StandInBackend"
-
-
-# ------------------------------------------------------------------------------------------------------
-# Stand-in backend: same contracts as exolan.data / exolan.models, no learning beyond least squares
-# ------------------------------------------------------------------------------------------------------
-
-# the stand-in backend builds real Trial records (the data contract), filled by least-squares stand-ins
-FakeTrial = Trial
-
-
-TRAIN_TASKS = ("walk", "stand", "calisthenics", "push_pull", "jump_in_place", "turn", "cut")
-
-
-def fake_world(users=6, tasks=TRAIN_TASKS + ("run", "squat", "ball_toss"), T=160, seed=0):
-    rng = np.random.default_rng(seed)
-    trials = []
-    for u in range(users):
-        mass = 60 + 5 * u
-        for k, task in enumerate(tasks):
-            for side in ("l", "r"):
-                t = np.arange(T) * 0.005
-                w = 2 * np.pi * (0.8 + 0.15 * k)
-                ph = rng.uniform(0, 2 * np.pi, 2)
-                amp = np.array([0.5, 0.8]) * (0.5 + 0.05 * k)
-                q = amp * np.sin(w * t[:, None] + ph)
-                qd = amp * w * np.cos(w * t[:, None] + ph)
-                qdd = -amp * w ** 2 * np.sin(w * t[:, None] + ph)
-                fv = np.maximum(0, np.sin(w * t + ph[0])) * mass * 9.81
-                tau = mass * (0.02 * qdd + 0.5 * np.sin(q) + 0.01 * qd) + 0.03 * fv[:, None]
-                tau = tau + rng.normal(0, 0.5, tau.shape)
-                valid = np.ones(T, bool)
-                valid[:3] = False
-                trials.append(FakeTrial(f"S{u:02d}", task, f"{task}_1_1", side, float(mass), 0.005,
-                                        ("hip", "knee"), ("revolute", "revolute"), q, qd, qdd, tau,
-                                        np.zeros_like(tau), fv, np.zeros((T, 2)), valid))
-    return trials
-
-
-class FakeModel(torch.nn.Module):
-    """tau = a*qdd + W [sin q, cos q, qd, f_v, z, 1]: linear, so forward dynamics is (tau - rest)/a."""
-
-    def __init__(self, dz, seed):
-        super().__init__()
-        g = torch.Generator().manual_seed(1234)
-        self.dz = dz
-        self.Wz = torch.nn.Parameter(torch.randn(7, dz, generator=g, dtype=torch.float64) * 0.1,
-                                     requires_grad=False)
-        self.a = torch.nn.Parameter(torch.ones(2, dtype=torch.float64), requires_grad=False)
-        self.W = torch.nn.Parameter(torch.zeros(7 + dz, 2, dtype=torch.float64), requires_grad=False)
-
-    def context(self, x):
-        x = torch.nan_to_num(x)
-        return torch.tanh(x @ self.Wz / 50.0)
-
-    def _feat(self, q, qd, z, fv):
-        return torch.cat([torch.sin(q), torch.cos(q), qd, fv[..., None] / 100, z], -1)
-
-    def inverse(self, q, qd, qdd, z, f_v):
-        return self.a * qdd + self._feat(q, qd, z, f_v) @ self.W
-
-    def forward_dynamics(self, q, qd, tau, z, f_v):
-        return (tau - self._feat(q, qd, z, f_v) @ self.W) / self.a
-
-
-class StandInBackend:
-    def simulate(self, out, scale):
-        Path(out).mkdir(parents=True, exist_ok=True)
-        (Path(out) / "fake.json").write_text(json.dumps({"users": scale.users, "seed": scale.world_seed}))
-
-    def load(self, data_dir):
-        if (Path(data_dir) / "real.json").exists():  # stand-in for shared/real: REAL01 + two other people
-            trials = []
-            for tr in fake_world(users=3, T=200, seed=5):
-                subj = {"S00": "REAL01", "S01": "REAL02", "S02": "REAL03"}[tr.subject]
-                task = tr.task if subj == "REAL01" or tr.task == "walk" else None
-                if task is None:
-                    continue
-                if subj == "REAL01" and task in ("squat", "ball_toss"):
-                    task = task + "_asym"  # unseen variants of the one person with many trials
-                trials.append(dataclasses.replace(tr, subject=subj, task=task, name=f"{task}_1_1"))
-            return trials
-        p = Path(data_dir) / "fake.json"
-        cfg = json.loads(p.read_text()) if p.exists() else {"users": 6, "seed": 0}
-        return fake_world(users=cfg["users"], seed=cfg["seed"])
-
-    def split(self, trials):
-        subs = sorted({t.subject for t in trials})
-        held = set(subs[len(subs) - len(subs) // 3:])
-        train = [t for t in trials if t.subject not in held and t.task in TRAIN_TASKS]
-        seen = [t for t in trials if t.subject in held and t.task in TRAIN_TASKS]
-        unseen = [t for t in trials if t.subject in held and t.task not in TRAIN_TASKS]
-        return train, seen, unseen
-
-    def context_features(self, tr):
-        return np.concatenate([tr.q, tr.qd, tr.f_v[:, None], tr.cop], 1)
-
-    def task_groups(self):
-        return {"walk": "cyclic", "run": "cyclic"}
-
-    def train(self, spec, train, run_dir, data_dir, device, threads):
-        dz = 0 if spec.arch in ("mlp", "delan") else 3
-        m = FakeModel(dz, spec.seed)
-        ckpt = Path(run_dir) / "model.pt"
-        if ckpt.exists():  # resume = reuse
-            m.load_state_dict(torch.load(ckpt))
-            return m
-        X, Y = [], []
-        with torch.no_grad():
-            for tr in train:
-                z = m.context(torch.as_tensor(self.context_features(tr))[None])[0]
-                f = m._feat(torch.as_tensor(tr.q), torch.as_tensor(tr.qd), z, torch.as_tensor(tr.f_v))
-                X.append(torch.cat([f, torch.as_tensor(tr.qdd)], 1).numpy()[tr.valid])
-                Y.append(tr.tau[tr.valid])
-        X, Y = np.concatenate(X), np.concatenate(Y)
-        rng = np.random.default_rng(spec.seed)
-        lam = 1e-3 * (1 + rng.random()) * (10 if not spec.lim else 1)
-        coef = np.linalg.solve(X.T @ X + lam * len(X) * np.eye(X.shape[1]), X.T @ Y)
-        with torch.no_grad():
-            m.W.copy_(torch.as_tensor(coef[:-2]))
-            m.a.copy_(torch.as_tensor(np.clip(np.diag(coef[-2:]), 1e-3, None)))
-        torch.save(m.state_dict(), ckpt)
-        return m
-
-
-# ------------------------------------------------------------------------------------------------------
-# tests
-# ------------------------------------------------------------------------------------------------------
+STANDIN = "standin:StandInBackend"
 
 def test_plan_has_16_methods_per_seed_and_shares_the_inverse_only_run():
     specs = R.plan(R.SCALES["small"], with_real=False)
@@ -365,103 +237,6 @@ def test_ray_path_gives_the_local_numbers(tiny_pool, fake_real, tmp_path, monkey
     assert any(f"{n} to run (ray local" in line for line in lines), lines
     assert not any("FAILED" in line for line in lines), lines
     assert _metrics(tmp_path) == _metrics(tiny_pool)
-
-
-def test_forward_dynamics_metrics_on_a_model_that_is_exact():
-    """A model whose inverse dynamics produced the torques recovers q̈ exactly; its open-loop rollouts
-    then only carry the integrator's error, which grows with the horizon, and match a plain loop."""
-    scale = R.SCALES["tiny"]
-    tr = fake_world(users=1, tasks=("walk",), T=200)[0]
-    m = FakeModel(3, 0)
-    with torch.no_grad():
-        m.W.copy_(torch.randn(m.W.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 0.1)
-        m.a.copy_(torch.tensor([0.5, 0.3], dtype=torch.float64))
-        z = m.context(torch.as_tensor(StandInBackend().context_features(tr))[None])[0]
-        tau = m.inverse(*(torch.as_tensor(a) for a in (tr.q, tr.qd, tr.qdd)), z, torch.as_tensor(tr.f_v))
-    tr = dataclasses.replace(tr, tau=tau.numpy())
-    rows = R._fd_metrics(m, [("seen", tr, z)], torch.float64, scale)
-    assert sum(rows[0]["sse_qdd"]) / rows[0]["n_qdd"] < 1e-20
-    h = rows[0]["horizons"]
-    mse = [sum(h[str(k)]["sse_q"]) / h[str(k)]["n"] for k in scale.horizons]
-    assert 0 < mse[0] < mse[1] < mse[2] < 1e-3
-    # the first start, integrated by hand
-    s = int(np.flatnonzero(np.convolve(tr.valid.astype(int), np.ones(21, int), "valid") == 21)[0])
-    q, qd = torch.as_tensor(tr.q[s]), torch.as_tensor(tr.qd[s])
-    for k in range(4):
-        qdd = m.forward_dynamics(q, qd, tau[s + k], z[s + k], torch.as_tensor(tr.f_v[s + k]))
-        qd = qd + tr.dt * qdd
-        q = q + tr.dt * qd
-    assert h["4"]["n"] >= 1
-    assert float(((q.numpy() - tr.q[s + 4]) ** 2).sum()) <= h["4"]["sse_q"][0] + h["4"]["sse_q"][1] + 1e-15
-
-
-def test_rollout_amplification_separates_integrated_from_compounding_errors():
-    """A persistent q̈ error is integrated as it is (A ≈ 1 at every horizon), one that flips sign every step
-    mostly cancels (A ≪ 1), and one that feeds back through the rolled-out velocity compounds (A grows with
-    the horizon): the number the report uses to say why a multi-step loss can or cannot help."""
-    from exolan import report
-
-    scale = R.SCALES["tiny"]
-    tr = fake_world(users=1, tasks=("walk",), T=200)[0]
-    T, dt, n = len(tr.q), tr.dt, tr.q.shape[1]
-    qdd = np.tile([[0.7, -0.4]], (T, 1))               # constant acceleration: semi-implicit Euler is exact
-    qd = np.cumsum(np.vstack([np.zeros((1, n)), dt * qdd[:-1]]), axis=0) + 0.2
-    q = np.cumsum(np.vstack([np.zeros((1, n)), dt * qd[1:]]), axis=0)
-    tr = dataclasses.replace(tr, q=q, qd=qd, qdd=qdd, valid=np.ones(T, bool))
-    bias = np.array([3.0, -2.0])
-
-    def amp(error):
-        def forward(q_, qd_, tau, z, fv, cx, owner, t):
-            return qdd[t] + error(qd_ - qd[t], t)
-        rows = R.rollout_metrics(forward, [("seen", tr, None)], scale)
-        st = report.fd_stats([{"fd_rows": rows, "torque_rows": []}], scale.horizons, rows[0]["dt"])
-        return [st["mean_std"][f"amp{h}"][0] for h in scale.horizons]
-
-    persistent = amp(lambda dqd, t: bias)
-    assert np.allclose(persistent, 1.0, atol=1e-9)
-    flipping = amp(lambda dqd, t: bias * np.where(t % 2 == 0, 1.0, -1.0)[:, None])
-    assert max(flipping) < 0.1
-    compounding = amp(lambda dqd, t: bias + 60.0 * dqd)
-    assert 1.0 < compounding[0] < compounding[1] < compounding[2]
-    assert compounding[2] > 3.0
-
-
-def test_forward_dynamics_errors_are_located_per_task_and_joint():
-    """A q̈ error planted on one task's knee shows on that task and joint only, and the report's table puts the
-    multi-step loss' change where it happened: how a reader sees where the multi-step claim fails."""
-    from exolan import report
-    from exolan.report.markdown import _fd_where_table
-
-    scale = R.SCALES["tiny"]
-    def integrated(tr):                                # q, q̇ exactly what semi-implicit Euler makes of q̈
-        qd = tr.qd[0] + np.vstack([np.zeros((1, 2)), np.cumsum(tr.dt * tr.qdd[:-1], axis=0)])
-        q = tr.q[0] + np.vstack([np.zeros((1, 2)), np.cumsum(tr.dt * qd[1:], axis=0)])
-        return dataclasses.replace(tr, q=q, qd=qd, valid=np.ones(len(tr.q), bool))
-
-    walk, squat = (integrated(tr) for tr in fake_world(users=1, tasks=("walk", "squat"), T=200)[::2])
-    items = [("seen", walk, None), ("unseen", squat, None)]
-
-    def stats(knee_error):
-        def forward(q, qd, tau, z, fv, cx, owner, t):
-            out = np.where(owner[:, None] == 0, walk.qdd[t], squat.qdd[t])
-            return out + np.where(owner == 1, knee_error, 0.0)[:, None] * np.array([0.0, 1.0])
-        rows = R.rollout_metrics(forward, items, scale)
-        return report.fd_stats([{"fd_rows": rows, "torque_rows": []}], scale.horizons, rows[0]["dt"])
-
-    a, b = stats(2.0), stats(1.0)
-    h = scale.horizons[-1]
-    assert a["per_task"]["walk"]["split"] == "seen" and a["per_task"]["squat"]["split"] == "unseen"
-    assert a["per_task"]["walk"][f"qd{h}"] < 1e-20
-    hip, knee = a["per_task"]["squat"][f"qd{h}_joints"]
-    assert hip < 1e-20 < knee
-    assert a["per_task"]["squat"]["qdd"] == pytest.approx(2.0, rel=1e-9)          # (0 + 2²) / 2 joints
-    assert a["per_joint"]["qdd"][0] < 1e-20 < a["per_joint"]["qdd"][1]
-    assert np.mean(a["per_joint"][f"qd{h}"]) == pytest.approx(a["mean_std"][f"qd{h}"][0], rel=1e-9)
-    table = "\n".join(_fd_where_table({"w_fd": a, "w_fd+w_ms": b}, h))
-    squat_row = next(line for line in table.splitlines() if line.startswith("| squat |"))
-    change = squat_row.split(" | ")[5]
-    assert change.startswith("-75.0% (") and change.endswith(" / -75.0%)")   # half the error: a quarter of the MSE
-    assert squat_row.endswith("| — | — |")                                   # no floor given
 
 
 def test_default_workers_is_one_per_core_within_free_memory(monkeypatch):
