@@ -7,7 +7,7 @@ import copy
 import numpy as np
 import torch
 
-from . import stats
+from . import compensate, stats
 from .candidates import LIBRARY, rivals
 from .export import extend
 from .fit import predict
@@ -15,7 +15,7 @@ from .flat import Flat, exo_own
 from .refits import held_errors, refit
 from .rules import gci, own_variation_passes, paired_gain
 from .settings import Settings
-from .subjects import gated
+from .subjects import gated, with_init
 
 
 def advanced(flat: Flat, k: np.ndarray) -> Flat:
@@ -151,29 +151,63 @@ def run_nulls(ss, results: list) -> None:
 
 def nulls_of(ss, entry: dict) -> None:
     """`run_nulls` for one candidate: its nulls and `passes_null` on its entry."""
-    flat, s, c = ss.flat, ss.s, LIBRARY[entry["effect"]]
-    j = flat.joints.index(entry["joint"])
-    lags = [leak_lag(ss.ref, flat, j)]
+    j = ss.flat.joints.index(entry["joint"])
+    judged = judge(ss, entry, j, ss.base, ss.flat, ss.ref, ss.fitted[(entry["effect"], j)][1], ss.e_ref,
+                   entry["estimate"])
+    entry["nulls"] = judged["nulls"]
+    entry["null_gain"] = judged["null_gain"]
+    entry["passes_null"] = judged["passes"]
+
+
+def judge(ss, entry: dict, j: int, base, data: Flat, resid_model, e_term: np.ndarray, e_ref: np.ndarray,
+          k_term: float, what: str = "") -> dict:
+    """Rule 3 for the exo-driven term of `entry` on joint j, on `data` with `base` as its base: the term's held-out
+    errors `e_term` against the same term fitted on the exo torque from the future (at the lag where the exo torque
+    correlates most with the residual of `resid_model`; a lag-free gain also at the controller's tracking lag), and
+    a gain on the controller's own variation alone against `e_ref` (the base's). Returns {nulls, null_gain, passes}:
+    the hardest null decides."""
+    s, c = ss.s, LIBRARY[entry["effect"]]
+    lags = [leak_lag(resid_model, data, j)]
     if c.lag_free:
         # a gain has no lag of its own: its null also takes the exo torque where it copies the joint torque
         # best (a clean world's knee "gain" beat the residual-chosen null; docs/DIAGNOSIS.md)
-        lags = sorted({lags[0], track_lag(flat, j)})
+        lags = sorted({lags[0], track_lag(data, j)})
     nulls = []
-    for null, adv, what, text in [future_null(ss.base, flat, entry, j, lag, s) for lag in lags]:
+    for null, adv, lag_s, text in [future_null(base, data, entry, j, lag, s) for lag in lags]:
         refit(null, adv, s)
-        gn = ss.gain(ss.errors(null, adv)[1], ss.fitted[(entry["effect"], j)][1])
-        nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0), **what))
-        ss.log(f"null {entry['effect']} {entry['joint']}: beats the same term on {text} by {gci(gn)}")
+        gn = ss.gain(ss.errors(null, adv)[1], e_term)
+        nulls.append(dict(gain=gn["gain"], ci=gn["ci"], passes=bool(gn["ci"][0] > 0), **lag_s))
+        ss.log(f"null {entry['effect']} {entry['joint']}{what}: beats the same term on {text} by {gci(gn)}")
     if c.lag_free:
         # ... and it must show in the controller's own variation (the exo torque less its copy of the joint
         # torque): the same term on that variation alone must beat the reference beyond the refit noise (a
         # term that soaks up model error correlated with the joint torque finds nothing there)
         init = gated(c.screen_init(entry.get("screen", {})), entry.get("form"), c.effect, j)
-        gn, k_own = on_own_variation(ss.base, flat, j, init, ss.e_ref, ss.held, ss.w_held, s)
+        gn, k_own = on_own_variation(base, data, j, init, e_ref, ss.held, ss.w_held, s)
         nulls.append(dict(gain=gn["gain"], ci=gn["ci"], own_variation_only=True, estimate=k_own,
-                          passes=own_variation_passes(gn, ss.sigma_r, k_own, entry["estimate"])))
-        ss.log(f"null {entry['effect']} {entry['joint']}: the same term on the controller's own variation alone "
-               f"(k {k_own:.3g}) beats the reference by {gci(gn)}")
-    entry["nulls"] = nulls
-    entry["null_gain"] = min(nulls, key=lambda x: (x["passes"], x["ci"][0]))
-    entry["passes_null"] = all(x["passes"] for x in nulls)
+                          passes=own_variation_passes(gn, ss.sigma_r, k_own, k_term)))
+        ss.log(f"null {entry['effect']} {entry['joint']}{what}: the same term on the controller's own variation "
+               f"alone (k {k_own:.3g}) beats the reference by {gci(gn)}")
+    return dict(nulls=nulls, null_gain=min(nulls, key=lambda x: (x["passes"], x["ci"][0])),
+                passes=all(x["passes"] for x in nulls))
+
+
+def on_top(ss, entry: dict, j: int, sel_given: tuple, cur, sc: dict) -> dict:
+    """Rule 3 for an exo-driven term tested on top of given terms: the nulls of `judge` where the term is added,
+    not only where it stood alone. `sel_given`: (the given terms, their `init`); `cur`: the model fitted with them;
+    `sc`: the term's screen on `cur`. The given terms are taken out of the data at `cur`'s sizes
+    (`compensate.data`), the networks are `cur`'s, and the term and its nulls are each refitted warm there. Alone,
+    a term competes with the others for one signal and so do its nulls; on top of them it may take only what they
+    leave over, and that is where it must beat its nulls."""
+    given, sizes = sel_given
+    for eff, jj in given:
+        sizes = with_init(sizes, {eff: cur.estimate(eff, jj)}, jj)
+    comp = compensate.data(ss.flat, given, sizes, ss.s.max_delay)
+    c, base = LIBRARY[entry["effect"]], cur.base
+    entry = dict(effect=entry["effect"], joint=entry["joint"], form=entry.get("form"), screen=sc)
+    term = extend(base, comp, [(c.effect, j)], max_delay=ss.s.max_delay,
+                  init=gated(with_init({}, c.screen_init(sc), j), entry.get("form"), c.effect, j))
+    refit(term, comp, ss.s)
+    return judge(ss, entry, j, base, comp, term, ss.errors(term, comp)[1], ss.errors(base, comp)[1],
+                 term.estimate(c.effect, j),
+                 what=" on top of " + ", ".join(f"{e}:{ss.flat.joints[jj]}" for e, jj in given))

@@ -53,7 +53,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    assistive controller's correlation with the human torque; a gain must also show in the controller's own variation (the exo torque
    less its copy of the joint torque, the copy being its fit on the joint torque's recent past): the same term
    on that variation alone must beat the reference beyond the refit noise, with its k on the same side of 1 as
-   the whole term's, since a real gain rescales it too;
+   the whole term's, since a real gain rescales it too; a term tested on top of accepted ones must beat its
+   nulls there as well (the accepted terms taken out of the data at their fitted sizes);
 4. the parameter's 95% CI (HAC sandwich, statsmodels) must exclude the no-effect value; signs are physics
    (damping, friction, delay, compliance ≥ 0 by construction; a fit at the boundary is not identified);
 5. a property of the joint helps in every task: the held-out gain without the quarter of the tasks (at least

@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import compensate, inference, physics_path, refits, rules, secondlook, subjects
+from . import compensate, inference, nulls, physics_path, refits, rules, secondlook, subjects
 from .candidates import LIBRARY
 from .flat import Flat
 from .settings import Budget, Settings, log
@@ -36,6 +36,7 @@ class Tools:
     adequacy: Callable = physics_path.adequacy          # the gate per joint: which path decides each joint's terms
     learned_check: Callable = physics_path.checked      # rule 6 on physics first's terms, until nothing changes
     fit_without: Callable = compensate.fitted_without   # physics first's extended model: fitted without its terms
+    nulls_on_top: Callable = nulls.on_top               # rule 3 for an exo-driven term tested on top of others
 
 
 @dataclass
