@@ -273,3 +273,28 @@ def test_rule_4_takes_its_rivals_from_the_runs_candidate_family():
     res = physics.identify(prepare([trial]), ("viscous_damping", "actuation_delay"), [0])
     assert {e for e, _ in res.status} <= {"viscous_damping", "actuation_delay"}, res.summary(("knee",))
     assert res.family == 2
+
+
+def test_a_candidate_is_tested_once_per_set_of_its_joints_accepted_terms():
+    """A step whose top candidate is rejected by a check (here a gain that rests on the copy of the joint torque)
+    leaves its joint's accepted terms as they were, and so the next step's tests are the same numbers: each
+    candidate is tested once per set of its joint's accepted terms (a step after a rejection tests nothing again)."""
+    import re
+
+    effects = ("viscous_damping", "torque_gain", "coulomb_friction")
+    lines = []
+    res = physics.identify(prepare([_gain_pendulum(np.random.default_rng(0), 1.0, 1.0)]), effects, [0],
+                           log=lines.append)
+    msg = res.summary(("knee",))
+    assert res.tests[0]["effect"] == "torque_gain" and res.status[("torque_gain", 0)][0] == "rejected", msg
+    tested = {}
+    for ln in lines:
+        m = re.match(r"physics step (\d+): testing (\w+) on knee", ln)
+        if m:
+            tested.setdefault(int(m[1]), []).append(m[2])
+    assert sorted(tested[1]) == sorted(effects)
+    assert 2 not in tested and len(res.tests) >= 2, (tested, res.tests)     # step 2: the tests of step 1
+    assert "physics step 2: 2 candidates as tested before" in " ".join(lines)
+    for step, rec in enumerate(res.tests[1:-1], start=2):       # after an acceptance the rest is tested again
+        if res.status[(rec["effect"], 0)][0] == "accepted":
+            assert sorted(tested[step + 1]) == sorted(set(effects) - {t["effect"] for t in res.tests[:step]})

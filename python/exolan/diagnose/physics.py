@@ -236,9 +236,16 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
     pool, r = [c for c in cands if joints is None or c[1] in joints], 0
     accepted = {j: [] for j in joint_ids}
     masks = flat.user_masks()
+    tests = {}          # a candidate's test depends only on its joint's accepted terms: made once per such set
     while pool:
-        tried = _test_all(probs, accepted, pool, masks, lambda e, j, r=r: log(
-            f"physics step {r + 1}: testing {e} on {flat.joints[j]}"))
+        todo = [(e, j) for e, j in pool if (e, j, tuple(accepted[j])) not in tests]
+        for row in _test_all(probs, accepted, todo, masks, lambda e, j, r=r: log(
+                f"physics step {r + 1}: testing {e} on {flat.joints[j]}")):
+            tests[(row[3], row[4], tuple(accepted[row[4]]))] = row
+        if len(todo) < len(pool):
+            log(f"physics step {r + 1}: {len(pool) - len(todo)} candidates as tested before (their joint's terms "
+                f"unchanged since)")
+        tried = [tests[(e, j, tuple(accepted[j]))] for e, j in pool]
         tried.sort(key=lambda x: (x[0], -_z(x[1], x[3])))      # p underflows to 0 past z ≈ 38: then the larger z
         p, f, split, e, j = tried[0]
         tried = [(pe, ee, jj, ff) for pe, ff, _, ee, jj in tried]
