@@ -11,6 +11,7 @@ from exolan.diagnose.refits import refit
 from exolan.diagnose.rules import invariance_rule
 from exolan.diagnose.session import Tools
 from exolan.diagnose.settings import Settings
+from exolan.diagnose.subjects import with_estimate
 from exolan.diagnose.workers import Workers
 
 from diagnose_helpers import leg_pair
@@ -57,7 +58,7 @@ def test_an_exo_driven_term_on_top_of_accepted_ones_must_beat_its_null_there(nul
     bias = blank_entry("torque_bias", 0, flat, ["S01"])
     bias.update(estimate=2.0)
     sel = selection.Selection(accepted=[("torque_bias", 0)], given=[("torque_bias", 0)])
-    sel.acc_init = sel.given_init = selection.with_estimate({}, bias, 0)
+    sel.acc_init = sel.given_init = with_estimate({}, bias, 0)
     cur = extend(ss.base, flat, sel.given, init=sel.given_init)
     refit(cur, flat, s)
     cur_u, cur_e = ss.errors(cur)
