@@ -269,6 +269,7 @@ def select(res: PhysicsResult, flat, n_boot: int = 400, log=None, joints=None) -
             continue
         accepted[j].append(e)
         cur[j] = f
+        tests = {k: v for k, v in tests.items() if k[1] != j}     # its joint's earlier tests: never asked again
         if split:           # it enters the later steps' fits split by subject
             probs[j].split[e] = masks
         res.status[(e, j)] = ("accepted", f"p {p:.3g} ≤ Holm's threshold {thr:.3g}; held-out gain {gain['gain']:.3g} "
