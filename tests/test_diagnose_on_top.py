@@ -111,3 +111,27 @@ def test_the_nulls_on_top_take_the_given_terms_out_at_the_fitted_sizes(monkeypat
     assert any(n.get("own_variation_only") for n in out["nulls"]) and len(out["nulls"]) in (2, 3)
     assert out["passes"] == all(n["passes"] for n in out["nulls"])
     assert out["null_gain"] == min(out["nulls"], key=lambda n: (n["passes"], n["ci"][0]))
+
+
+def test_the_nulls_on_top_take_a_shaped_term_out_at_its_fitted_shape(monkeypatch):
+    """A given Stribeck friction is taken out at the force and the velocity scale its model fitted, not at the
+    velocity scale it started from."""
+    import torch
+
+    from exolan.diagnose import compensate, nulls
+
+    flat = prepare(_assisted_trials())
+    s = Settings(steps_base=20, steps_refit=5, hidden=8, n_boot=100, verbose=False)
+    ss, _ = procedure.reference(flat, s, None, Tools(), Workers(1), [0, 1])
+    given, init = [("stribeck_friction", 1)], {"stribeck_friction": {1: 1.0}, "stribeck_vs": {1: 0.1}}
+    cur = extend(ss.base, flat, given, init=init)
+    with torch.no_grad():
+        cur.stribeck_vs_raw[1] = cur.stribeck_vs_raw[1] + 1.0      # as if its fit had moved vs
+    fitted = cur.physical()
+    assert abs(fitted["stribeck_vs"][1] - 0.1) > 1e-3
+    seen = []
+    real_data = compensate.data
+    monkeypatch.setattr(compensate, "data", lambda f, terms, sizes, md: seen.append(sizes) or real_data(f, terms, sizes, md))
+    nulls.on_top(ss, blank_entry("torque_gain", 0, flat, ["S01"]), 0, (given, init), cur, {})
+    assert seen[0]["stribeck_vs"][1] == pytest.approx(float(fitted["stribeck_vs"][1]), rel=1e-6)
+    assert seen[0]["stribeck_friction"][1] == pytest.approx(float(fitted["stribeck_friction"][1]), rel=1e-6)

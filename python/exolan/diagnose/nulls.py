@@ -200,8 +200,12 @@ def on_top(ss, entry: dict, j: int, sel_given: tuple, cur, sc: dict) -> dict:
     a term competes with the others for one signal and so do its nulls; on top of them it may take only what they
     leave over, and that is where it must beat its nulls."""
     given, sizes = sel_given
+    fitted = cur.physical()
     for eff, jj in given:
-        sizes = with_init(sizes, {eff: cur.estimate(eff, jj)}, jj)
+        shape = LIBRARY[eff].shape
+        sizes = with_init(sizes, {eff: cur.estimate(eff, jj), **({shape: float(fitted[shape][jj])} if shape else {})},
+                          jj)
+    sizes = {**sizes, **cur.subject_init()}         # the switches and per-subject sizes as fitted too
     comp = compensate.data(ss.flat, given, sizes, ss.s.max_delay)
     c, base = LIBRARY[entry["effect"]], cur.base
     entry = dict(effect=entry["effect"], joint=entry["joint"], form=entry.get("form"), screen=sc)
