@@ -139,6 +139,14 @@ def outdone_by_a_doubted_rival(results: list[dict], errors, compare) -> None:
             break
 
 
+def failed_text(null: dict) -> str:
+    """Why a term failed the hardest of its nulls (`judge`'s `null_gain`), in words."""
+    if null.get("own_variation_only"):
+        return ("the same term on the controller's own variation alone (the exo torque less its copy of the joint "
+                "torque) does not beat the reference beyond the refit noise: a real gain rescales that variation too")
+    return "no better than the same term on future exo torque (assistive torque tracks the human torque)"
+
+
 def run_nulls(ss, results: list) -> None:
     """Rule 3 for every exo-driven candidate that passes so far: the same term fitted on the exo torque taken from
     the future (at the lag where it correlates most with the residual; a lag-free gain also where the exo torque

@@ -9,6 +9,7 @@ import numpy as np
 
 from .candidates import LIBRARY, NESTS, nested_choice, rivals
 from .export import extend
+from .nulls import failed_text
 from .refits import refit
 from .rules import gci, invariance_reason
 from .screen import screen
@@ -134,32 +135,23 @@ def further(ss, e, sel: Selection, cur, cur_u, cur_e) -> bool:
     inv = ss.invariance(cur_e - e_both, both, e["effect"], jj)
     cg["task_invariance"] = inv
     passes = ss.above_noise(g, alpha=level) and inv["passes"] and ss.tools.user_improves(cur_u, u_both)
-    null_fails = False
     if passes and LIBRARY[e["effect"]].needs_exo:
         # rule 3 where the term is added: alone it had to beat its nulls in competition with the given terms
         on = ss.tools.nulls_on_top(ss, e, jj, (sel.given, sel.given_init), cur, sc)
         cg.update(nulls=on["nulls"], null_gain=on["null_gain"])
-        passes, null_fails = on["passes"], not on["passes"]
+        if not on["passes"]:
+            e.update(status="rejected", reason=f"on top of {', '.join(cg['given'])} it does not beat its null (rule 3: "
+                     f"{failed_text(on['null_gain'])}; {gci(on['null_gain'])})")
+            return False
     if passes and ss.from_scratch:
         passes, inv = _further_from_scratch(ss, e, sel, jj, init, level, inv)
     if passes:
         e.rank = g["gain"]     # rank the rest by what they add
         ss.fitted[(e["effect"], jj)] = (both, e_both)
         return True
-    if null_fails:
-        e.update(status="rejected", reason="on top of " + ", ".join(cg["given"]) + " it does not beat its null (rule 3: "
-                 + _null_text(cg["null_gain"]) + "): what it adds there is not shown to be the exo torque's")
-        return False
     e.update(status="rejected", reason="adds nothing on held-out data once " + ", ".join(cg["given"]) + " is modelled"
              + ("" if inv["passes"] else f" ({invariance_reason(inv)})"))
     return False
-
-
-def _null_text(n: dict) -> str:
-    """The hardest null's record (`nulls.judge`) in words."""
-    if n.get("own_variation_only"):
-        return f"on the controller's own variation alone (k {n['estimate']:.3g}) it gains {gci(n)} over the base"
-    return f"its gain over the same term on the exo torque {1000 * n['future_lag_s']:.0f} ms in the future is {gci(n)}"
 
 
 def _further_from_scratch(ss, e, sel: Selection, jj: int, init: dict, level: float, inv: dict) -> tuple[bool, dict]:

@@ -11,6 +11,7 @@ from .candidates import LIBRARY, blank_entry
 from .export import extend
 from .inference import identifiable
 from .limits import injected_limit
+from .nulls import failed_text
 from .refits import refit
 from .rules import gci, invariance_reason
 from .screen import screen
@@ -219,10 +220,7 @@ def _why_rejected(entry, c) -> list[str]:
     if entry["passes_gain"] and not entry["passes_invariance"]:
         why.append(invariance_reason(entry["task_invariance"]))
     if c.needs_exo and entry.get("passes_null") is False:
-        why.append("the same term on the controller's own variation alone (the exo torque less its copy of the "
-                   "joint torque) does not beat the reference beyond the refit noise: a real gain rescales that "
-                   "variation too" if entry["null_gain"].get("own_variation_only")
-                   else "no better than the same term on future exo torque (assistive torque tracks the human torque)")
+        why.append(failed_text(entry["null_gain"]))
     return why
 
 
