@@ -135,3 +135,40 @@ def test_the_nulls_on_top_take_a_shaped_term_out_at_its_fitted_shape(monkeypatch
     nulls.on_top(ss, blank_entry("torque_gain", 0, flat, ["S01"]), 0, (given, init), cur, {})
     assert seen[0]["stribeck_vs"][1] == pytest.approx(float(fitted["stribeck_vs"][1]), rel=1e-6)
     assert seen[0]["stribeck_friction"][1] == pytest.approx(float(fitted["stribeck_friction"][1]), rel=1e-6)
+
+
+def test_the_nulls_on_top_take_a_per_subject_term_out_at_each_subjects_fitted_size(monkeypatch):
+    """A given knee damping with a size per subject is taken out at each subject's fitted size (its model's
+    `subject_init`), not at the subjects' shared start: the torque the nulls are judged on is the recorded one
+    minus θ_u q̇ with θ_u each subject's own."""
+    import torch
+
+    from exolan.diagnose import compensate, nulls
+
+    trials = _assisted_trials()
+    for t in _assisted_trials(seed=4):
+        t.subject = "S02"
+        trials.append(t)
+    flat = prepare(trials)
+    s = Settings(steps_base=20, steps_refit=5, hidden=8, n_boot=100, verbose=False)
+    ss, _ = procedure.reference(flat, s, None, Tools(), Workers(1), [0, 1])
+    ss.sigma_r = 0.0
+    subject_of_trial = np.array([0, 0, 1, 1])
+    given = [("viscous_damping", 1)]
+    init = {"viscous_damping": {1: 1.0}, "sized": {"viscous_damping": {1: np.zeros(2)}},
+            "subject_of_trial": subject_of_trial}
+    cur = extend(ss.base, flat, given, init=init)
+    with torch.no_grad():
+        getattr(cur, "size_viscous_damping")[:, 1] = torch.tensor([-0.4, 0.4])   # as if fitted apart
+    own = [cur.physical(trial=t)["viscous_damping"][1, 1] for t in (0, 2)]
+    assert own[1] / own[0] == pytest.approx(np.exp(0.8), rel=1e-6)
+    made = []
+    real_data = compensate.data
+    monkeypatch.setattr(compensate, "data",
+                        lambda f, terms, sizes, md: made.append(real_data(f, terms, sizes, md)) or made[-1])
+    nulls.on_top(ss, blank_entry("torque_gain", 0, flat, ["S01", "S02"]), 0, (given, init), cur, {})
+    comp = made[0]
+    for t, theta in zip((0, 2), own):
+        rows = flat.trial == t
+        removed = (flat.tau[rows, 1] - comp.tau[rows, 1]).double()
+        assert torch.allclose(removed, theta * flat.qd[rows, 1].double(), rtol=1e-5, atol=1e-5)
