@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.stats import norm
 
 from exolan.diagnose import physics, physics_checks
 from exolan.diagnose.flat import prepare
@@ -182,7 +183,7 @@ def test_a_term_the_checks_set_aside_leaves_the_joint_fit_and_the_others_are_siz
     physics_checks.cross_check(res, flat, residual, [0])
     before = {e: res.estimates[(e, 0)].estimate for e in ("torque_gain", "strap_compliance")}
     strap_cross = res.cross[("strap_compliance", 0)]
-    res.cross[("torque_gain", 0)] = dataclasses.replace(res.cross[("torque_gain", 0)], p=1.0)
+    res.cross[("torque_gain", 0)] = dataclasses.replace(res.cross[("torque_gain", 0)], theta=0.0, p=1.0)
     assert physics_checks.settle(res, flat, residual, [0], n_boot=200) == [0]
     alone = physics.term_estimate(prob, prob.fit(["strap_compliance"]), "strap_compliance", "knee").estimate
     ver = physics_checks.verdicts(res)
@@ -248,10 +249,13 @@ def test_a_rival_pair_is_told_apart_where_only_one_of_them_shows_on_the_learned_
     prob = res._probs[0]
     residual = (prob.sig.tau_raw[:, 0] - res._fits[0].pred)[:, None]
 
+    def at_p(te, p):                          # the same size, its SE set to give p (two-sided)
+        return dataclasses.replace(te, p=p, se=abs(te.theta) / float(norm.isf(p / 2)))
+
     def cross(j, terms):
         f = prob.fit(terms)
-        return {t: dataclasses.replace(physics.term_estimate(prob, f, t, "knee"),
-                                       p=gain_p if t == "torque_gain" else 1e-12) for t in terms}
+        return {t: at_p(physics.term_estimate(prob, f, t, "knee"), gain_p if t == "torque_gain" else 1e-12)
+                for t in terms}
 
     redone = physics_checks.rivals(res, flat, residual, [0], n_boot=200, cross=cross)
     ver = physics_checks.verdicts(res)
@@ -298,3 +302,28 @@ def test_a_candidate_is_tested_once_per_set_of_its_joints_accepted_terms():
     for step, rec in enumerate(res.tests[1:-1], start=2):       # after an acceptance the rest is tested again
         if res.status[(rec["effect"], 0)][0] == "accepted":
             assert sorted(tested[step + 1]) == sorted(set(effects) - {t["effect"] for t in res.tests[:step]})
+
+
+@pytest.mark.parametrize("z", [1.85, 2.1])
+def test_rule_5_asks_the_learned_residual_for_the_interval_the_finding_reports(z):
+    """A strap sized on the learned base's residual at z = θ/SE = 1.85 (one-sided p 0.032, under the 5 % a one-sided
+    test asks) has a 95 % interval that reaches no strap (a stiffness of ∞): the finding, whose interval spans both
+    sizes, would hold no effect, so rule 5 objects; at z = 2.1 the interval is bounded and rule 5 lets it be."""
+    from exolan.diagnose.estimates import TermEstimate, report_interval
+    from exolan.diagnose import ident
+
+    def sized(theta, se):
+        t = ident.TERMS["strap_compliance"]
+        lo, hi = theta - 1.959963984540054 * se, theta + 1.959963984540054 * se
+        return TermEstimate("strap_compliance", "knee", t.value(theta, None), report_interval(t, lo, hi, None),
+                            theta, se, ident.p_value("strap_compliance", theta, se))
+
+    parametric = sized(6.1e-3, 5.9e-4)
+    on_residual = sized(3.9e-4, 3.9e-4 / z)
+    reaches_no_effect = math.isinf(on_residual.ci[1])
+    assert reaches_no_effect is (z < 1.96)
+    assert on_residual.p < 0.05                                 # a one-sided test at 5 % would let both through
+    why = physics_checks.unsupported(parametric, on_residual, 0.05)
+    assert (why is not None) is reaches_no_effect
+    if why:
+        assert "shows no such term" in why and "inf" in why

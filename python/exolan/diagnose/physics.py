@@ -27,7 +27,8 @@ Rule, in plain words (the report states it):
    (`physics_checks.rivals`).
 5. Cross-check: the same terms fitted on the learned base's residual (a constant and the terms only). Where
    the two intervals do not overlap, the finding reports both and its interval spans both: the data size the
-   effect only up to that disagreement. Where the learned base's residual shows no effect at all, or one of the
+   effect only up to that disagreement. Where the learned base's residual shows no effect at all (its 95 % interval
+   reaches no effect: the span would hold none), or one of the
    other sign (a gain above 1 there below 1: the span holds no effect), the term is `ambiguous` (the parametric
    base may be what misses it).
 6. The learned base's check (`physics_path.learned_check`): the learned base with the term held at its parametric

@@ -5,6 +5,7 @@ terms that remain (`settle`)."""
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats as sps
 
 from . import ident, parallel_filter, physics_subjects
 from .physics import PhysicsResult, final_fit, term_estimate
@@ -27,14 +28,23 @@ def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: l
 
 def unsupported(m, c, alpha: float) -> str | None:
     """Rule 5's objection to a term sized `m` by the parametric base and `c` on the learned base's residual, or
-    None: the residual shows no such term, or one of the other sign (a two-sided term seen both ways)."""
-    if c.p > alpha:
+    None: the residual shows no such term, or one of the other sign (a two-sided term seen both ways).
+
+    "Shows" is judged by the (1 − α) interval that the finding reports, not by a one-sided p: the finding's interval
+    spans both sizes, and one that holds no effect is no finding (rule 4 on what is reported)."""
+    if not shows(c, alpha):
         return (f"the learned base's residual shows no such term ({c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}], "
                 f"p {c.p:.2g}): the parametric base may be what misses it")
     if c.theta * m.theta < 0:
         return (f"on the learned base's residual it points the other way ({c.estimate:.4g} [{c.ci[0]:.4g}, "
                 f"{c.ci[1]:.4g}] against {m.estimate:.4g}): the two bases do not agree that there is such an effect")
     return None
+
+
+def shows(c, alpha: float) -> bool:
+    """Whether a size `c` (a `TermEstimate`) is bounded away from no effect (θ = 0) by its two-sided (1 − α)
+    interval: a one-sided term's p then below α/2."""
+    return bool(c.se > 0 and np.isfinite(c.se) and abs(c.theta) > sps.norm.isf(alpha / 2) * c.se)
 
 
 def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=None) -> None:
