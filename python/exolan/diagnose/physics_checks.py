@@ -22,8 +22,19 @@ def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: l
     sig_r.tau[:, j] = r
     p = ident.JointProblem(sig_r, j, np.ones((len(r), 1)), ["const"], prob.ctx, shiftable=False)
     p.w = prob.w
+    p.split = {e: form_masks(res.forms[(e, j)], sig.trial) for e in terms if (e, j) in res.forms}
     f = p.fit(terms)
     return {e: term_estimate(p, f, e, flat.joints[j]) for e in terms}
+
+
+def form_masks(form: dict, row_trial: np.ndarray) -> list:
+    """A subject form's row masks (`physics_subjects.form_of`): a switch's one mask over its subjects' trials, or one
+    per subject for their own sizes. The cross-check sizes a term in the form it was taken in: a term of one subject
+    fitted shared on the learned residual is diluted by the subjects without it."""
+    if form["kind"] == "switch":
+        return [np.asarray(form["trials"], float)[row_trial]]
+    subject = np.asarray(form["subject_of_trial"])[row_trial]
+    return [(subject == k).astype(float) for k in range(len(form["users"]))]
 
 
 def unsupported(m, c, alpha: float) -> str | None:
@@ -57,9 +68,18 @@ def cross_check(res: PhysicsResult, flat, residual: np.ndarray, joint_ids, log=N
         for e, c in on_residual(res, flat, residual, j, terms).items():
             res.cross[(e, j)] = c
             if log:
-                c, m = res.cross[(e, j)], res.estimates[(e, j)]
-                log(f"cross-check {e} on {flat.joints[j]}: parametric {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
+                m_est, m_ci = sized(res, (e, j))
+                form = " (in its subject form)" if (e, j) in res.forms else ""
+                log(f"cross-check {e} on {flat.joints[j]}{form}: parametric {m_est:.4g} [{m_ci[0]:.4g}, {m_ci[1]:.4g}], "
                     f"on the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]")
+
+
+def sized(res: PhysicsResult, key) -> tuple[float, list]:
+    """The parametric size and interval of an accepted term as the finding reports it: its subject form's where it
+    has one (the cross-check sizes it in that form too, `on_residual`)."""
+    if key in res.forms:
+        return res.forms[key]["estimate"], list(res.forms[key]["ci"])
+    return res.estimates[key].estimate, list(res.estimates[key].ci)
 
 
 def verdicts(res: PhysicsResult) -> dict:
@@ -72,12 +92,13 @@ def verdicts(res: PhysicsResult) -> dict:
             v.update(estimate=m.estimate, ci=list(m.ci))
             c = res.cross.get(key)
             if c is not None:
-                why, both = unsupported(m, c, res.alpha), span_if_disjoint(m.ci, c.ci)
+                m_est, m_ci = sized(res, key)
+                why, both = unsupported(m, c, res.alpha), span_if_disjoint(m_ci, c.ci)
                 if why:
                     v.update(status="ambiguous", reason=reason + "; but " + why)
                 elif both:
                     v["ci"] = both
-                    v["note"] = (f"sizes disagree: parametric base {m.estimate:.4g} [{m.ci[0]:.4g}, {m.ci[1]:.4g}], "
+                    v["note"] = (f"sizes disagree: parametric base {m_est:.4g} [{m_ci[0]:.4g}, {m_ci[1]:.4g}], "
                                  f"the learned base's residual {c.estimate:.4g} [{c.ci[0]:.4g}, {c.ci[1]:.4g}]; the "
                                  "interval spans both")
             lc = res.learned_check.get(key)

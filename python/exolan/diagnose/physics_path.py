@@ -154,6 +154,8 @@ def entries(phys: physics.PhysicsResult, flat, s, joint_ids) -> list[dict]:
                     e.update(**evidence(phys, s, key, groups, kind, subj))
                     if key in phys.forms and e["status"] == "accepted":
                         with_form(e, phys.forms[key])
+                        if v.get("note"):           # the form's size and the cross-check's disagree: the span
+                            e.update(ci=v["ci"], ci_method=e["ci_method"] + ", spanning the learned base's cross-check")
                     elif key in phys.forms_refused and e["status"] == "accepted":
                         e.subject_form_not_taken = phys.forms_refused[key]
                 if key in phys.cross:
