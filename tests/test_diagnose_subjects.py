@@ -98,12 +98,12 @@ def test_subject_form_gates_a_term_to_the_subjects_whose_residual_asks_for_it():
     assert subject_form(None, flat, "viscous_damping", 1, {}, predict=predict) is None
 
 
-def _two_drives() -> list:
-    """Two subjects' linear drives, viscous damping 2 in S01 and 8 in S02."""
+def _two_drives(viscous=(2.0, 8.0)) -> list:
+    """Two subjects' linear drives, viscous damping 2 in S01 and 8 in S02 (or `viscous`)."""
     from exolan.diagnose.synthetic import linear_drive
 
     trials = []
-    for subj, visc, seed in (("S01", 2.0, 5), ("S02", 8.0, 6)):
+    for subj, visc, seed in zip(("S01", "S02"), viscous, (5, 6)):
         tr, _ = linear_drive(n_trials=2, seconds=4.0, seed=seed, viscous=visc)
         for k, t in enumerate(tr):
             t.subject, t.name = subj, f"{subj.lower()}_drive_{k}"
@@ -320,15 +320,8 @@ def test_the_cross_check_sizes_a_term_in_the_subject_form_it_was_taken_in():
     suite's seed 7071: a knee damping of S02 set aside because, shared, the residual showed −0.015 [−0.097, 0.067])."""
     from exolan.diagnose import physics, physics_checks, physics_subjects
     from exolan.diagnose.flat import prepare
-    from exolan.diagnose.synthetic import linear_drive
 
-    trials = []
-    for subj, visc, seed in (("S01", 0.0, 5), ("S02", 8.0, 6)):
-        tr, _ = linear_drive(n_trials=2, seconds=4.0, seed=seed, viscous=visc)
-        for k, t in enumerate(tr):
-            t.subject, t.name = subj, f"{subj.lower()}_drive_{k}"
-        trials += tr
-    flat = prepare(trials)
+    flat = prepare(_two_drives((0.0, 8.0)))
     res = physics.identify(flat, ("viscous_damping",), [0])
     physics_subjects.take(res, flat, n_boot=200)
     key = ("viscous_damping", 0)
