@@ -22,19 +22,10 @@ def on_residual(res: PhysicsResult, flat, residual: np.ndarray, j: int, terms: l
     sig_r.tau[:, j] = r
     p = ident.JointProblem(sig_r, j, np.ones((len(r), 1)), ["const"], prob.ctx, shiftable=False)
     p.w = prob.w
-    p.split = {e: form_masks(res.forms[(e, j)], sig.trial) for e in terms if (e, j) in res.forms}
+    # in the form each term was taken in: a term of one subject fitted shared would be diluted by the others
+    p.split = {e: physics_subjects.form_masks(res.forms[(e, j)], sig.trial) for e in terms if (e, j) in res.forms}
     f = p.fit(terms)
     return {e: term_estimate(p, f, e, flat.joints[j]) for e in terms}
-
-
-def form_masks(form: dict, row_trial: np.ndarray) -> list:
-    """A subject form's row masks (`physics_subjects.form_of`): a switch's one mask over its subjects' trials, or one
-    per subject for their own sizes. The cross-check sizes a term in the form it was taken in: a term of one subject
-    fitted shared on the learned residual is diluted by the subjects without it."""
-    if form["kind"] == "switch":
-        return [np.asarray(form["trials"], float)[row_trial]]
-    subject = np.asarray(form["subject_of_trial"])[row_trial]
-    return [(subject == k).astype(float) for k in range(len(form["users"]))]
 
 
 def unsupported(m, c, alpha: float) -> str | None:

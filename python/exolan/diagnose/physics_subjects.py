@@ -79,6 +79,15 @@ def form_of(prob: ident.JointProblem, f: ident.Fit, effect: str, users: list, ro
     return out
 
 
+def form_masks(form: dict, row_trial: np.ndarray) -> list:
+    """A taken form's row masks (`form_of`'s record; `row_trial`: each row's trial): a switch's one mask over its
+    subjects' trials, or one per subject for their own sizes, as `ident.JointProblem.split` takes them."""
+    if form["kind"] == "switch":
+        return [np.asarray(form["trials"], float)[row_trial]]
+    subject = np.asarray(form["subject_of_trial"])[row_trial]
+    return [(subject == k).astype(float) for k in range(len(form["users"]))]
+
+
 def take(res: physics.PhysicsResult, flat, n_boot: int, log=None, joints=None) -> None:
     """Every accepted linear term of `res` in its joint's fit given its subject form where the data ask for one
     (`res.forms`); the joint's held-out errors (`res.e_held`, which the second gate reads) then those of the form's
