@@ -182,6 +182,43 @@ def test_fit_weights_follow_the_inverse_misfit_of_each_trial_and_joint(arm):
     np.testing.assert_allclose(wf[tr].mean(0).numpy(), 1.0, rtol=1e-4)
 
 
+def test_fit_weights_count_the_misfit_no_candidate_explains(arm):
+    """`weights.explained_misfit_weights`: a hip damping in every trial misfits the faster trial most, and the
+    base's misfit alone down-weights that trial with the effect in it; less what the candidates' columns
+    explain, both trials weigh about the same. A misfit no candidate has the shape of (noise 10x in one trial)
+    still down-weights its trial as `fit.misfit_weights` does."""
+    from exolan.diagnose.fit import misfit_weights, predict
+    from exolan.diagnose.weights import explained_misfit_weights
+
+    base = make_base(arm, hidden=8, seed=0)
+    every = torch.arange(arm.q.shape[0])
+    fitted = predict(base, arm, every)
+    rng = np.random.default_rng(1)
+    hip = lambda f: float(f[arm.trial == 1, 0].mean() / f[arm.trial == 0, 0].mean())
+    effects = ("viscous_damping", "coulomb_friction", "torque_bias")
+
+    damped = copy.copy(arm)
+    noise = torch.as_tensor(0.2 * rng.standard_normal(arm.tau.shape), dtype=arm.tau.dtype)
+    damped.tau = fitted + noise
+    damped.tau[:, 0] += 3.0 * arm.qd[:, 0]              # the faster trial (1) moves 2.7x as fast at the hip
+    assert hip(misfit_weights(base, damped)) < 0.6      # two trials: the shrinkage keeps it above 1/3
+    assert hip(explained_misfit_weights(base, damped, effects, [0, 1])) == pytest.approx(1.0, abs=0.15)
+
+    # a damping in one subject only: one shared column would move half its misfit to the other subject's trials
+    two = copy.copy(arm)
+    two.trial_meta = [dict(m, subject=f"S0{i + 1}") for i, m in enumerate(arm.trial_meta)]
+    two.tau = fitted + noise
+    two.tau[:, 0] += 3.0 * arm.qd[:, 0] * (arm.trial == 1)
+    assert hip(misfit_weights(base, two)) < 0.6
+    assert hip(explained_misfit_weights(base, two, effects, [0, 1])) == pytest.approx(1.0, abs=0.15)
+
+    noisy = copy.copy(arm)
+    noisy.tau = fitted + noise * torch.where(arm.trial == 1, 10.0, 1.0)[:, None]
+    w_plain, w_left = misfit_weights(base, noisy), explained_misfit_weights(base, noisy, effects, [0, 1])
+    assert hip(w_left) < 0.4
+    assert hip(w_left) == pytest.approx(hip(w_plain), rel=0.1)
+
+
 def test_decisions_weight_held_out_errors_as_the_fits_do_and_users_see_them_unweighted(arm):
     """`_held_errors`: the user's error is the plain sum over joints of the mass-normalised squared torque
     error; the decision's weights each joint's error by its trial's fit weight; without weights both agree."""

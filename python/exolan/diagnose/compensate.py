@@ -16,7 +16,7 @@ from dataclasses import replace
 import torch
 
 from ..extensions import ExtendedModel
-from .fit import misfit_weights
+from . import weights
 from .flat import Flat
 from .refits import base_fit, refit
 from .settings import Settings
@@ -114,6 +114,6 @@ def fitted_without(flat: Flat, s: Settings, start: torch.nn.Module, terms: list,
     m = copy.deepcopy(start)
     base_fit(m, fc, s, "extended model: the base fitted without its terms")
     if s.weighted:
-        fc.weight = misfit_weights(m, fc)
+        fc.weight = weights.of_base(m, fc, s)
     refit(m, fc, s)
     return on_raw(m, flat, terms, init, s.max_delay)

@@ -16,7 +16,8 @@ from ..data import savgol_derivative
 from . import stats
 from .candidates import LIBRARY
 from .export import extend
-from .fit import misfit_weights, predict, train
+from . import weights
+from .fit import predict, train
 from .flat import Flat, exo_copy
 from .refits import base_fit, held_errors, refit
 from .rules import above_noise, own_variation_passes, paired_gain
@@ -200,7 +201,7 @@ def limits_by_injection(flat: Flat, s: Settings, base_start, ref, held: torch.Te
         base_i = copy.deepcopy(base_start)
         base_fit(base_i, inj, s, "detection limit by injection: base fit", trainer=fits.train)
         if s.weighted:
-            inj.weight = misfit_weights(base_i, inj)
+            inj.weight = weights.of_base(base_i, inj, s)
         w = inj.weight[held].numpy().astype(np.float64) if s.decide_weighted and inj.weight is not None else None
         ref_i = copy.deepcopy(base_i)
         fits.refit(ref_i, inj, s)

@@ -14,7 +14,7 @@ from . import extended, nulls, selection, single
 from . import residuals as R
 from .candidates import LIBRARY
 from .base import make_base
-from .fit import misfit_weights
+from . import weights
 from .flat import prepare, sample_groups
 from .limits import all_limits, torque_unit
 from .refits import FitCache, base_fit, metrics, refit
@@ -72,8 +72,10 @@ def fit_base(flat, s: Settings, model, start=None):
         base_fit(base, flat, s)
     log(s, f"base fitted in {time.time() - t0:.0f} s")
     if s.weighted:
-        flat.weight = misfit_weights(base, flat)
-        log(s, "fit weights per trial and joint (inverse misfit of the base): " +
+        t1 = time.time()
+        flat.weight = weights.of_base(base, flat, s)
+        log(s, f"fit weights per trial and joint ({time.time() - t1:.0f} s; inverse misfit of the base" +
+               (" less every candidate's column" if s.weights_explained else "") + "): " +
                ", ".join(f"{nm} {float(flat.weight[:, j].min()):.2g}..{float(flat.weight[:, j].max()):.2g}"
                          for j, nm in enumerate(flat.joints)))
     return base, base_start, describe_base(base, flat, s, given=model is not None)

@@ -43,6 +43,7 @@ class Settings:
     joints: tuple | None = None  # restrict to these joint names (None: all)
     max_delay: float = 0.1
     weighted: bool = True       # refits weight each trial and joint by the base's inverse misfit (fit.misfit_weights)
+    weights_explained: bool = True  # the weights' misfit: the base's less what every candidate column explains (`weights`)
     decide_weighted: bool = True  # decisions on the held-out error with the fits' weights (reported gains unweighted)
     pelvis_tilt: bool = False   # base term: the pelvis tilts with the other hip (base.py docstring)
     pelvis_surge: bool = True   # base term: the pelvis's fore-aft acceleration from both insoles (base.PelvisSurge)
