@@ -44,7 +44,8 @@ RULE_TEXT = """Decision rule (every threshold is a statistic of these data, none
    is the refit noise (RMS held-out difference between the reference and twin refits that differ only in
    minibatch order; every refit ends on Polyak-averaged network weights, which keeps σ_r small).
    Every refit is a weighted least-squares fit, each trial and joint weighted by the base model's inverse
-   misfit there, so that the tasks the model fits worst do not pull a joint's parameter; every decision
+   misfit there, less what every candidate's column explains of it, so that the tasks the model fits worst do
+   not pull a joint's parameter and the trials that carry an effect are not down-weighted for it; every decision
    compares held-out errors with the same weights (the "decision gain"), and the unweighted held-out gain
    (the torque error you see, reported as "held-out gain") must be above 0 too;
 3. terms driven by the recorded exo torque (delay, gain, strap) must beat the same term fitted on the exo torque
