@@ -189,9 +189,22 @@ def misfit_weights(model: nn.Module, flat: Flat) -> torch.Tensor:
     shrinkage (halfway to the median) keeps a trial the model happens to fit almost exactly from dominating;
     the held-out gains stay unweighted (the user's torque error).
     """
+    tr, r, _ = training_residual(model, flat)
+    return row_weights(r, flat, tr)
+
+
+def training_residual(model: nn.Module, flat: Flat) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
+    """(training rows, the model's residual there in units of each row's mass times the joint's torque scale,
+    that unit (rows, n)): the misfit the fit weights are made from."""
     tr = flat.index("train")
-    scale = torch.as_tensor(flat.tau_scale, dtype=DTYPE)
-    r = ((predict(model, flat, tr) - flat.tau[tr]) / (flat.mass[tr, None] * scale)).numpy().astype(np.float64)
+    norm = flat.mass[tr, None] * torch.as_tensor(flat.tau_scale, dtype=DTYPE)
+    r = ((predict(model, flat, tr) - flat.tau[tr]) / norm).numpy().astype(np.float64)
+    return tr, r, norm.numpy().astype(np.float64)
+
+
+def row_weights(r: np.ndarray, flat: Flat, tr: torch.Tensor) -> torch.Tensor:
+    """Fit weights (N, n) from a residual r at the training rows tr (`trial_weights`), normalised to mean 1 over
+    the training rows of each joint."""
     w_trial = trial_weights(r, flat.trial[tr].numpy(), len(flat.lengths))
     w = torch.as_tensor(w_trial, dtype=DTYPE)[flat.trial]
     return w / w[tr].mean(0)

@@ -185,7 +185,7 @@ def run(data, model=None, settings: Settings | None = None, trials_loaded=None, 
     held = flat.index("held")
     log(s, f"{len(trials)} trials, {flat.q.shape[0]} samples ({len(flat.index('train'))} train, {len(held)} held out), "
            f"joints {flat.joints} {flat.joint_types}, exo={flat.has_exo}, insole={flat.has_insole}")
-    joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
+    joint_ids = s.joint_ids(flat)
     from . import physics_path
     start = new_base(flat, s) if model is None else None      # made here: the fit started ahead needs it too
     ahead = []

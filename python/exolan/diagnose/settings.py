@@ -65,6 +65,10 @@ class Settings:
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"Settings.{name} must be at least 1, got {getattr(self, name)}")
 
+    def joint_ids(self, flat) -> list[int]:
+        """The indices of the joints these settings diagnose (`joints`; all where None)."""
+        return [j for j, nm in enumerate(flat.joints) if self.joints is None or nm in self.joints]
+
 
 @dataclass(frozen=True)
 class Budget:

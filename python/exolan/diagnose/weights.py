@@ -15,8 +15,8 @@ import numpy as np
 import torch
 
 from .candidates import LIBRARY
-from .fit import misfit_weights, predict, trial_weights
-from .flat import DTYPE, Flat
+from .fit import misfit_weights, row_weights, training_residual
+from .flat import Flat
 
 ROWS = 30000        # the projection's rows (training rows, evenly spaced): ~40 columns need far fewer
 
@@ -43,14 +43,11 @@ def explained_misfit_weights(model, flat: Flat, effects, joint_ids) -> torch.Ten
     """Fit weights (N, n) as `fit.misfit_weights`, from the base's training residual less what every candidate's
     column explains (one least-squares projection over all joints, each joint's rows scaled to unit variance so
     that both equations count; fitted on up to `ROWS` training rows, applied to all)."""
-    tr = flat.index("train")
-    scale = torch.as_tensor(flat.tau_scale, dtype=DTYPE)
-    norm = (flat.mass[tr, None] * scale).numpy().astype(np.float64)
-    r = (flat.tau[tr] - predict(model, flat, tr)).numpy().astype(np.float64) / norm
+    tr, r, norm = training_residual(model, flat)
     sub = np.unique(np.linspace(0, len(tr) - 1, min(ROWS, len(tr))).astype(int))
     X = columns(model, flat, tr[sub], effects, joint_ids)
-    if X.shape[1] == 0:
-        return misfit_weights(model, flat)
+    if X.shape[1] == 0:                  # no candidate: the base's misfit alone (`fit.misfit_weights`)
+        return row_weights(r, flat, tr)
     sd = r[sub].std(0) + 1e-30                                  # each joint's equation in its own unit
     Xs = (X.reshape(len(sub), flat.n, -1) / (norm[sub][:, :, None] * sd[None, :, None])).reshape(X.shape)
     beta = np.linalg.lstsq(Xs, (r[sub] / sd).reshape(-1), rcond=None)[0]
@@ -60,14 +57,11 @@ def explained_misfit_weights(model, flat: Flat, effects, joint_ids) -> torch.Ten
         rows = tr[a:a + ROWS]
         F = columns(model, flat, rows, effects, joint_ids).reshape(len(rows), flat.n, -1)
         left[a:a + len(rows)] = r[a:a + len(rows)] - (F / norm[a:a + len(rows), :, None]) @ beta
-    w_trial = trial_weights(left, flat.trial[tr].numpy(), len(flat.lengths))
-    w = torch.as_tensor(w_trial, dtype=DTYPE)[flat.trial]
-    return w / w[tr].mean(0)
+    return row_weights(left, flat, tr)
 
 
 def of_base(model, flat: Flat, s) -> torch.Tensor:
     """The fit weights of a base fitted on `flat` under settings `s` (`Settings.weights_explained`)."""
     if not s.weights_explained:
         return misfit_weights(model, flat)
-    joint_ids = [j for j, nm in enumerate(flat.joints) if s.joints is None or nm in s.joints]
-    return explained_misfit_weights(model, flat, s.effects, joint_ids)
+    return explained_misfit_weights(model, flat, s.effects, s.joint_ids(flat))
