@@ -134,6 +134,37 @@ def test_fractional_delay_is_linear_interpolation_of_the_history():
     assert ext.delay_raw.grad is not None and float(ext.delay_raw.grad.abs()[1]) > 0
 
 
+def test_a_lagged_history_gives_the_gathered_historys_bits():
+    """`Lagged` reads two columns of a history where the (B, K+1, n) tensor holds all of them: the same predicted
+    torque and the same gradients, bit for bit, at rows in any order and near a trial's start (clamped lags);
+    a delay on both joints, one between grid points, the strap reading the delayed derivatives."""
+    base = _base()
+    dt = 0.005
+    ext = ExtendedModel(base, 2, [("actuation_delay", 0), ("actuation_delay", 1), ("strap_compliance", 1)], dt=dt,
+                        max_delay=0.05, init={"actuation_delay": 0.0137, "strap_compliance": 300.0})
+    lengths = [90, 110]
+    g = torch.Generator().manual_seed(3)
+    series = [torch.randn(sum(lengths), 2, generator=g) for _ in range(3)]
+    lag = torch.as_tensor(lag_table(lengths, 10))
+    rows = torch.cat([torch.tensor([0, 1, 90, 91, 95]), torch.randint(sum(lengths), (40,), generator=g)])
+    B = len(rows)
+    q, qd, qdd = (torch.randn(B, 2, generator=g) for _ in range(3))
+    fv = torch.rand(B)
+
+    def run(hist):
+        ext.zero_grad()
+        tau = ext.inverse(q, qd, qdd, _z(B, base), fv, *hist)
+        tau.square().sum().backward()
+        return tau.detach(), [p.grad.clone() for p in ext.parameters() if p.grad is not None]
+
+    from exolan.extensions import Lagged
+    tau_a, grads_a = run([x[lag[rows]] for x in series])
+    tau_b, grads_b = run([Lagged(x, lag, rows) for x in series])
+    assert torch.equal(tau_a, tau_b)
+    assert len(grads_a) == len(grads_b) > 0 and all(torch.equal(a, b) for a, b in zip(grads_a, grads_b))
+    assert float(ext.delay_raw.grad.abs().min()) > 0
+
+
 def test_observation_corrections_encoder_offset_and_strap():
     base = _base()
     ext = ExtendedModel(base, 2, [("encoder_offset", 0), ("strap_compliance", 1)], dt=0.005,

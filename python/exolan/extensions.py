@@ -22,7 +22,8 @@ the extended model is passive — its energy ½ q̇ᵀ H q̇ + V never grows wit
 
 Sequences: the delay needs the history of the exoskeleton torque. Samples are rows (B, ·); the exo torque
 comes either as (B, n) (current sample) or as a history (B, K+1, n), column k = k steps earlier in the same
-trial, clamped at the trial's start (`lag_table(lengths, K)` gives the flat indices to gather it). The strap
+trial, clamped at the trial's start (`lag_table(lengths, K)` gives the flat indices to gather it), or as a
+`Lagged` series that reads only the columns the delay needs. The strap
 needs τ̇_e and τ̈_e in the same form (`exo_derivatives`); a backlash the side of its gap, `side=(s, ṡ, s̈)` (`gap_side`),
 a sensor effect that the engine's export leaves out (the limb's dynamics are the base's; its width is metadata).
 """
@@ -45,6 +46,25 @@ EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", 
 SIZEABLE = ("viscous_damping", "coulomb_friction", "stribeck_friction", "encoder_offset", "torque_bias",
             "strap_compliance")
 COULOMB_EPS = 0.01   # rad/s (or m/s): the tanh smoothing of sign(q̇), the same in the world and the engine
+
+
+class Lagged:
+    """A series' history at B rows read on demand: `column(k)` (B, n) holds, per joint j, the sample k_j steps
+    earlier, as column k of the (B, K+1, n) history tensor does, without gathering the K+1 columns of which a
+    delay reads two (the gathers were a fifth of a delay fit's step)."""
+
+    def __init__(self, values: torch.Tensor, lag: torch.Tensor, rows: torch.Tensor):
+        self.values, self.lag, self.rows = values, lag, rows     # (N, n), (N, K+1) flat indices, (B,)
+
+    @property
+    def K(self) -> int:
+        return self.lag.shape[1] - 1
+
+    def now(self) -> torch.Tensor:
+        return self.values[self.rows]
+
+    def column(self, k: torch.Tensor) -> torch.Tensor:
+        return self.values.gather(0, self.lag[self.rows[:, None], k[None, :]])
 
 
 def _inv_softplus(y: float) -> float:
@@ -347,22 +367,31 @@ class ExtendedModel(nn.Module):
     # -- pieces of the physics ---------------------------------------------------------------------
     @staticmethod
     def _hist(x):
-        """(B, n) -> (B, 1, n); (B, K+1, n) stays: column k is the sample k steps earlier."""
-        return None if x is None else (x.unsqueeze(1) if x.dim() == 2 else x)
+        """(B, n) -> (B, 1, n); (B, K+1, n) and `Lagged` stay: column k is the sample k steps earlier."""
+        return x if x is None or isinstance(x, Lagged) else (x.unsqueeze(1) if x.dim() == 2 else x)
 
-    def _shift(self, hist: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    @staticmethod
+    def _now(hist):
+        """The current sample (B, n) of a history."""
+        return None if hist is None else hist.now() if isinstance(hist, Lagged) else hist[:, 0]
+
+    def _shift(self, hist, d: torch.Tensor) -> torch.Tensor:
         """x(t − d) per joint by linear interpolation between the two bracketing samples of the history."""
-        K = hist.shape[1] - 1
+        lagged = isinstance(hist, Lagged)
+        K = hist.K if lagged else hist.shape[1] - 1
         if K < 1:
             raise ValueError("a delay needs the exo-torque history (B, K+1, n) with K >= 1")
         s = torch.clamp(d / self.dt, 0.0, K - 1e-9)          # (n,) samples
         k0 = torch.floor(s).detach()
         frac = s - k0                                          # differentiable in d
         k0 = k0.long()
-        B, _, n = hist.shape
-        i0 = k0.view(1, 1, n).expand(B, 1, n)
-        x0 = torch.gather(hist, 1, i0)[:, 0]
-        x1 = torch.gather(hist, 1, i0 + 1)[:, 0]
+        if lagged:
+            x0, x1 = hist.column(k0), hist.column(k0 + 1)
+        else:
+            B, _, n = hist.shape
+            i0 = k0.view(1, 1, n).expand(B, 1, n)
+            x0 = torch.gather(hist, 1, i0)[:, 0]
+            x1 = torch.gather(hist, 1, i0 + 1)[:, 0]
         return (1.0 - frac) * x0 + frac * x1
 
     def applied_exo(self, tau_e, tau_e_d=None, tau_e_dd=None, trial=None):
@@ -371,12 +400,11 @@ class ExtendedModel(nn.Module):
         The applied torque is the recorded one delayed by d where the delay term is active.
         """
         h, hd, hdd = self._hist(tau_e), self._hist(tau_e_d), self._hist(tau_e_dd)
-        now = lambda x: None if x is None else x[:, 0]
         if "actuation_delay" not in self.effects:
-            return now(h), now(hd), now(hdd)
+            return self._now(h), self._now(hd), self._now(hdd)
         d = self.delay()
         m = self.mask_actuation_delay * self.gate("actuation_delay", trial)
-        sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * x[:, 0]
+        sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * self._now(x)
         return sh(h), sh(hd), sh(hdd)
 
     def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None, trial=None, side=None):
@@ -431,7 +459,7 @@ class ExtendedModel(nn.Module):
 
         tau_e, tau_e_d, tau_e_dd: recorded exo torque and its smoothed derivatives, either (B, n) for the
         current sample or (B, K+1, n) histories (column k = k samples earlier, clamped at the trial start;
-        `lag_table` builds the indices). The delay term needs the history. `trial` (B,): the rows' trial
+        `lag_table` builds the indices), or `Lagged` series. The delay term needs the history. `trial` (B,): the rows' trial
         indices, for gated (subject-specific) terms. `side`: (s, ṡ, s̈) of a backlash gap (`gap_side`).
         """
         return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd, trial, side)[0]
@@ -441,7 +469,7 @@ class ExtendedModel(nn.Module):
         expose its inertia (a fit's acceleration term reuses it instead of evaluating the network again)."""
         if tau_e is None:
             tau_e = torch.zeros_like(q)
-        tau_now = self._hist(tau_e)[:, 0]
+        tau_now = self._now(self._hist(tau_e))
         tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd, trial)
         qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd, trial, side)
         if hasattr(self.base, "inverse_inertia"):

@@ -15,7 +15,7 @@ from dataclasses import replace
 
 import torch
 
-from ..extensions import ExtendedModel
+from ..extensions import ExtendedModel, Lagged
 from . import weights
 from .flat import Flat
 from .refits import base_fit, refit
@@ -46,8 +46,8 @@ def data(flat: Flat, terms: list, init: dict, max_delay: float) -> Flat:
     m = terms_model(flat, terms, init, max_delay).to(torch.float64)
     rows = torch.arange(flat.q.shape[0])
     d64 = lambda x: x.to(torch.float64)
-    hist = [d64(x) for x in flat.exo_hist(rows)]
-    tau_now = hist[0][:, 0]
+    hist = [Lagged(d64(x), flat.lag, rows) for x in (flat.tau_e, flat.tau_e_d, flat.tau_e_dd)]
+    tau_now = hist[0].now()
     app, app_d, app_dd = m.applied_exo(*hist, trial=flat.trial)
     side = tuple(d64(x) for x in (flat.side, flat.side_d, flat.side_dd)) if flat.side is not None else None
     q, qd, qdd = m.true_state(d64(flat.q), d64(flat.qd), d64(flat.qdd), app, app_d, app_dd, trial=flat.trial,

@@ -27,11 +27,11 @@ def predict(model: nn.Module, flat: Flat, idx: torch.Tensor, chunk: int = 16384)
 
 def _inputs(model, base, flat: Flat, b: torch.Tensor) -> tuple:
     """The model's inverse-dynamics arguments at rows b. Only a delay needs the exo torque's history; the
-    other terms take the current row (gathering the (B, K+1, n) histories costs 4 % of a diagnosis)."""
+    other terms take the current row; a delay reads two columns of each history (`Lagged`), not all K+1."""
     args = (flat.q[b], flat.qd[b], flat.qdd[b], base.z_of(flat.trial[b]), flat.forces(b))
     if not isinstance(model, ExtendedModel):
         return args
-    ex = (flat.exo_hist(b) if "actuation_delay" in model.effects
+    ex = (flat.exo_lagged(b) if "actuation_delay" in model.effects
           else (flat.tau_e[b], flat.tau_e_d[b], flat.tau_e_dd[b]))
     return args + tuple(ex)
 

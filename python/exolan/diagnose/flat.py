@@ -17,6 +17,7 @@ import torch
 
 from ..data import DataError, savgol_window
 from ..exo_signals import exo_derivatives, gap_side, lag_table, velocity_response
+from ..extensions import Lagged
 
 DTYPE = torch.float32   # diagnosis fits run in float32 (speed); export converts to float64
 
@@ -101,6 +102,10 @@ class Flat:
         """(B, K+1, n) histories of τ_e, τ̇_e, τ̈_e for the rows idx."""
         lg = self.lag[idx]
         return self.tau_e[lg], self.tau_e_d[lg], self.tau_e_dd[lg]
+
+    def exo_lagged(self, idx: torch.Tensor):
+        """The same histories as `Lagged` series: a delay reads two columns of each, not K+1 (a fit's hot path)."""
+        return tuple(Lagged(x, self.lag, idx) for x in (self.tau_e, self.tau_e_d, self.tau_e_dd))
 
 
 SURGE_FEATURES = 5

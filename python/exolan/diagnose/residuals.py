@@ -120,7 +120,7 @@ def rollout_errors(model, flat: Flat, starts: torch.Tensor, horizon: int = 20) -
             if ext is None:
                 z = torch.zeros_like(flat.q[i])
                 return z, z
-            he, hd, hdd = flat.exo_hist(i)
+            he, hd, hdd = flat.exo_lagged(i)
             tr = flat.trial[i]
             app, app_d, _ = ext.applied_exo(he, hd, hdd, trial=tr)
             qt, qdt, _ = ext.true_state(flat.q[i], flat.qd[i], None, app, app_d, None, trial=tr)
@@ -135,7 +135,7 @@ def rollout_errors(model, flat: Flat, starts: torch.Tensor, horizon: int = 20) -
             if ext is None:
                 qdd = base.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i))
             else:
-                he, hd, hdd = flat.exo_hist(i)
+                he, hd, hdd = flat.exo_lagged(i)
                 app, _, _ = ext.applied_exo(he, hd, hdd, trial=flat.trial[i])
                 qdd = ext.forward_dynamics(q, qd, flat.tau[i], z, flat.forces(i), flat.tau_e[i], app,
                                            trial=flat.trial[i])
