@@ -159,7 +159,8 @@ def test_a_lagged_history_gives_the_gathered_historys_bits():
 
     from exolan.extensions import Lagged
     tau_a, grads_a = run([x[lag[rows]] for x in series])
-    tau_b, grads_b = run([Lagged(x, lag, rows) for x in series])
+    shared: dict = {}
+    tau_b, grads_b = run([Lagged(x, lag, rows, shared) for x in series])
     assert torch.equal(tau_a, tau_b)
     assert len(grads_a) == len(grads_b) > 0 and all(torch.equal(a, b) for a, b in zip(grads_a, grads_b))
     assert float(ext.delay_raw.grad.abs().min()) > 0

@@ -53,18 +53,23 @@ class Lagged:
     earlier, as column k of the (B, K+1, n) history tensor does, without gathering the K+1 columns of which a
     delay reads two (the gathers were a fifth of a delay fit's step)."""
 
-    def __init__(self, values: torch.Tensor, lag: torch.Tensor, rows: torch.Tensor):
+    def __init__(self, values: torch.Tensor, lag: torch.Tensor, rows: torch.Tensor, shared: dict | None = None):
         self.values, self.lag, self.rows = values, lag, rows     # (N, n), (N, K+1) flat indices, (B,)
+        self.shared = {} if shared is None else shared          # row indices by column, shared by series of one lag
 
     @property
     def K(self) -> int:
         return self.lag.shape[1] - 1
 
     def now(self) -> torch.Tensor:
-        return self.values[self.rows]
+        return self.values.index_select(0, self.rows)
 
     def column(self, k: torch.Tensor) -> torch.Tensor:
-        return self.values.gather(0, self.lag[self.rows[:, None], k[None, :]])
+        key = tuple(k.tolist())
+        if key not in self.shared:
+            flat = (self.rows[:, None] * self.lag.shape[1] + k[None, :]).reshape(-1)
+            self.shared[key] = self.lag.reshape(-1).index_select(0, flat).view(len(self.rows), -1)
+        return self.values.gather(0, self.shared[key])
 
 
 def _inv_softplus(y: float) -> float:

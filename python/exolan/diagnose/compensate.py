@@ -46,7 +46,8 @@ def data(flat: Flat, terms: list, init: dict, max_delay: float) -> Flat:
     m = terms_model(flat, terms, init, max_delay).to(torch.float64)
     rows = torch.arange(flat.q.shape[0])
     d64 = lambda x: x.to(torch.float64)
-    hist = [Lagged(d64(x), flat.lag, rows) for x in (flat.tau_e, flat.tau_e_d, flat.tau_e_dd)]
+    shared: dict = {}
+    hist = [Lagged(d64(x), flat.lag, rows, shared) for x in (flat.tau_e, flat.tau_e_d, flat.tau_e_dd)]
     tau_now = hist[0].now()
     app, app_d, app_dd = m.applied_exo(*hist, trial=flat.trial)
     side = tuple(d64(x) for x in (flat.side, flat.side_d, flat.side_dd)) if flat.side is not None else None

@@ -105,7 +105,8 @@ class Flat:
 
     def exo_lagged(self, idx: torch.Tensor):
         """The same histories as `Lagged` series: a delay reads two columns of each, not K+1 (a fit's hot path)."""
-        return tuple(Lagged(x, self.lag, idx) for x in (self.tau_e, self.tau_e_d, self.tau_e_dd))
+        shared: dict = {}
+        return tuple(Lagged(x, self.lag, idx, shared) for x in (self.tau_e, self.tau_e_d, self.tau_e_dd))
 
 
 SURGE_FEATURES = 5
