@@ -28,7 +28,8 @@ def predict(model: nn.Module, flat: Flat, idx: torch.Tensor, chunk: int = 16384)
 def _inputs(model, base, flat: Flat, b: torch.Tensor) -> tuple:
     """The model's inverse-dynamics arguments at rows b. Only a delay needs the exo torque's history; the
     other terms take the current row; a delay reads two columns of each history (`Lagged`), not all K+1."""
-    args = (flat.q[b], flat.qd[b], flat.qdd[b], base.z_of(flat.trial[b]), flat.forces(b))
+    rows = lambda x: x.index_select(0, b)       # noqa: E731 (a row gather; x[b] costs twice as much)
+    args = (rows(flat.q), rows(flat.qd), rows(flat.qdd), base.z_of(rows(flat.trial)), flat.forces(b))
     if not isinstance(model, ExtendedModel):
         return args
     ex = (flat.exo_lagged(b) if "actuation_delay" in model.effects
@@ -144,9 +145,9 @@ def _loss(model, base, flat: Flat, b: torch.Tensor, scale, acc_scale, w_acc: flo
           of: int | None = None) -> torch.Tensor:
     """The fit's loss at rows b: the mean over b, or (`of`) the rows' sum over `of` rows, a piece's share."""
     pred, H = _forward_inertia(model, base, flat, b) if w_acc > 0 else (_forward(model, base, flat, b), None)
-    err = pred - flat.tau[b]
-    r = err / (flat.mass[b, None] * scale)
-    w = flat.weight[b] if weighted and flat.weight is not None else 1.0
+    err = pred - flat.tau.index_select(0, b)
+    r = err / (flat.mass.index_select(0, b)[:, None] * scale)
+    w = flat.weight.index_select(0, b) if weighted and flat.weight is not None else 1.0
     mean = (lambda x: x.sum(-1).mean()) if of is None else (lambda x: x.sum() / of)
     loss = mean(w * r ** 2)
     if w_acc > 0:

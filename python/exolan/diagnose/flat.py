@@ -63,9 +63,13 @@ class Flat:
         q, q̇, q̈ of the other hip, the 5 surge features, x_cop] (the pelvis's vertical load, tilt and fore-aft
         acceleration, `base` module docstring; the own centre of pressure)."""
         if not self.has_partner:
-            return self.f_v[idx]
-        return torch.cat([self.f_v[idx, None], self.f_o[idx, None], self.kin_o[idx], self.surge[idx],
-                          self.x_cop[idx, None]], -1)
+            return self.f_v.index_select(0, idx)
+        packed = self.__dict__.get("_forces")      # built once: one gather a fit step instead of five and a cat
+        if packed is None or packed[0] is not self.f_v:
+            packed = (self.f_v, torch.cat([self.f_v[:, None], self.f_o[:, None], self.kin_o, self.surge,
+                                           self.x_cop[:, None]], -1))
+            self.__dict__["_forces"] = packed
+        return packed[1].index_select(0, idx)
 
     @property
     def n(self) -> int:

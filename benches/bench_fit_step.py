@@ -1,0 +1,91 @@
+"""One diagnosis fit step, this tree against another: the base model and the base with an actuation delay (whose
+fits read the exo torque's history), batch 4096, one torch thread, as the diagnosis fits them; prints each tree's
+best ms per step, the ratio, and whether the two trees' losses after the same steps are the same bits.
+
+    python benches/bench_fit_step.py [--data DIR] [--against REV] [--steps 150] [--repeats 3]
+
+Without --data it uses the 4-user x 6-task x 20 s world of `bench_diagnose.py`. The other tree is a git worktree
+under out/bench_trees/ (`bench_train.tree_of`); the trees run alternately in fresh processes, so that a busy
+spell of a shared machine falls on both. A benchmark, not a test.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def worker(data: str, steps: int) -> dict:
+    import copy
+
+    import torch
+    torch.set_num_threads(1)
+    from exolan.diagnose.fit import train
+    from exolan.diagnose.flat import prepare
+    from exolan.diagnose.procedure import Settings, load_trials, new_base
+    from exolan.extensions import ExtendedModel
+
+    s = Settings(verbose=False)
+    flat = prepare(load_trials(data), max_delay=s.max_delay, seed=s.seed)
+    start = new_base(flat, s)
+    out = {}
+    for name, effects in (("base", []), ("delay", [("actuation_delay", 1)])):
+        m = ExtendedModel(copy.deepcopy(start), flat.n, effects, dt=flat.dt, max_delay=s.max_delay, init={},
+                          coupled_damping=False)
+        train(m, flat, 10, lr=s.lr_base, batch=s.batch, seed=1, w_acc=s.w_acc)     # warm-up
+        t = time.perf_counter()
+        hist = train(m, flat, steps, lr=s.lr_base, batch=s.batch, seed=0, w_acc=s.w_acc)
+        out[name] = dict(ms=(time.perf_counter() - t) / steps * 1e3, loss=hist[-1])
+    return out
+
+
+def run(tree: Path, data: str, steps: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree / "python"))
+    done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", "--data", data,
+                           "--steps", str(steps)], env=env, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(f"bench worker ({tree}) failed:\n{done.stderr[-2000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default=None)
+    ap.add_argument("--against", default=None, help="a git revision to time beside this tree")
+    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_diagnose import world
+    data = a.data or str(world(ROOT / "out" / "bench_diagnose_world"))
+    if a.worker:
+        print(json.dumps(worker(data, a.steps)))
+        return
+    from bench_train import tree_of
+    trees = {"this tree": ROOT} | ({a.against: tree_of(a.against)} if a.against else {})
+    runs: dict = {k: [] for k in trees}
+    for r in range(a.repeats):
+        for name, tree in trees.items():
+            runs[name].append(run(tree, data, a.steps))
+            print(f"repeat {r + 1}/{a.repeats} {name}: " + ", ".join(
+                f"{m} {v['ms']:.2f} ms" for m, v in runs[name][-1].items()), flush=True)
+    best = {k: {m: min(x[m]["ms"] for x in v) for m in v[0]} for k, v in runs.items()}
+    print(f"\nms per fit step (best of {a.repeats}, {a.steps} steps, batch 4096, one thread):")
+    for m in best["this tree"]:
+        line = f"  {m:6s} this tree {best['this tree'][m]:.2f}"
+        if a.against:
+            same = runs["this tree"][0][m]["loss"] == runs[a.against][0][m]["loss"]
+            line += (f"  {a.against} {best[a.against][m]:.2f}  ratio {best[a.against][m] / best['this tree'][m]:.2f}x"
+                     f"  loss after {a.steps} steps {'the same bits' if same else 'DIFFERS'}")
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
