@@ -3,6 +3,10 @@ fits read the exo torque's history), batch 4096, one torch thread, as the diagno
 best ms per step, the ratio, and whether the two trees' losses after the same steps are the same bits.
 
     python benches/bench_fit_step.py [--data DIR] [--against REV] [--steps 150] [--repeats 3]
+    python benches/bench_fit_step.py --pieces [--data DIR]
+
+`--pieces`: this tree only, a delay fit's step cut in `refits.FRESH_PIECES` pieces as fits from scratch are, alone
+(the second piece on the free core) and with two fits at once (each piece after the other), against uncut.
 
 Without --data it uses the 4-user x 6-task x 20 s world of `bench_diagnose.py`. The other tree is a git worktree
 under out/bench_trees/ (`bench_train.tree_of`); the trees run alternately in fresh processes, so that a busy
@@ -45,6 +49,43 @@ def worker(data: str, steps: int) -> dict:
     return out
 
 
+def pieces(data: str, steps: int) -> None:
+    import copy
+    import threading
+
+    import torch
+    torch.set_num_threads(1)
+    from exolan.diagnose.fit import train
+    from exolan.diagnose.flat import prepare
+    from exolan.diagnose.procedure import Settings, load_trials, new_base
+    from exolan.diagnose.refits import FRESH_PIECES
+    from exolan.diagnose.workers import Workers
+    from exolan.extensions import ExtendedModel
+
+    s = Settings(verbose=False)
+    flat = prepare(load_trials(data), max_delay=s.max_delay, seed=s.seed)
+    start = new_base(flat, s)
+
+    def fit(k: int, pool) -> float:
+        m = ExtendedModel(copy.deepcopy(start), flat.n, [("actuation_delay", 1)], dt=flat.dt, max_delay=s.max_delay,
+                          init={}, coupled_damping=False)
+        t = time.perf_counter()
+        train(m, flat, steps, lr=s.lr_base, batch=s.batch, seed=0, w_acc=0.0, weighted=False, pieces=k, pool=pool)
+        return (time.perf_counter() - t) / steps * 1e3
+
+    def two(k: int) -> list[float]:
+        out: list = []
+        ths = [threading.Thread(target=lambda: out.append(fit(k, Workers(1)))) for _ in range(2)]
+        [t.start() for t in ths], [t.join() for t in ths]
+        return out
+
+    fit(1, None)        # warm-up
+    pool = Workers(2)
+    print(f"delay fit, ms per step ({steps} steps, batch 4096): uncut alone {fit(1, None):.2f}; "
+          f"{FRESH_PIECES} pieces alone {pool.map([lambda: fit(FRESH_PIECES, pool)])[0]:.2f}; two fits at once: "
+          f"uncut {max(two(1)):.2f}, {FRESH_PIECES} pieces {max(two(FRESH_PIECES)):.2f}")
+
+
 def run(tree: Path, data: str, steps: int) -> dict:
     env = dict(os.environ, PYTHONPATH=str(tree / "python"))
     done = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", "--data", data,
@@ -60,6 +101,7 @@ def main() -> None:
     ap.add_argument("--against", default=None, help="a git revision to time beside this tree")
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--pieces", action="store_true", help="a fit from scratch's pieces alone and two at once")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = ap.parse_args()
     sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -67,6 +109,9 @@ def main() -> None:
     data = a.data or str(world(ROOT / "out" / "bench_diagnose_world"))
     if a.worker:
         print(json.dumps(worker(data, a.steps)))
+        return
+    if a.pieces:
+        pieces(data, a.steps)
         return
     from bench_train import tree_of
     trees = {"this tree": ROOT} | ({a.against: tree_of(a.against)} if a.against else {})
