@@ -157,7 +157,7 @@ def test_a_lagged_history_gives_the_gathered_historys_bits():
         tau.square().sum().backward()
         return tau.detach(), [p.grad.clone() for p in ext.parameters() if p.grad is not None]
 
-    from exolan.extensions import Lagged
+    from exolan.exo_signals import Lagged
     tau_a, grads_a = run([x[lag[rows]] for x in series])
     shared: dict = {}
     tau_b, grads_b = run([Lagged(x, lag, rows, shared) for x in series])

@@ -1,10 +1,11 @@
-"""Trial signals for the extended model: exo-torque lag tables and derivatives, the recorded velocity's filter,
-the side of a backlash gap (`gap_side`)."""
+"""Trial signals for the extended model: exo-torque lag tables, histories read on demand (`Lagged`) and
+derivatives, the recorded velocity's filter, the side of a backlash gap (`gap_side`)."""
 from __future__ import annotations
 
 from typing import Sequence
 
 import numpy as np
+import torch
 
 from .data import finite_runs
 
@@ -19,6 +20,30 @@ def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
         out.append(start + np.maximum(t[:, None] - k[None, :], 0))
         start += T
     return np.concatenate(out, axis=0) if out else np.zeros((0, max_lag + 1), dtype=np.int64)
+
+
+class Lagged:
+    """A series' history at B rows read on demand: `column(k)` (B, n) holds, per joint j, the sample k_j steps
+    earlier, as column k of the (B, K+1, n) history tensor does, without gathering the K+1 columns of which a
+    delay reads two (the gathers were a fifth of a delay fit's step)."""
+
+    def __init__(self, values: torch.Tensor, lag: torch.Tensor, rows: torch.Tensor, shared: dict | None = None):
+        self.values, self.lag, self.rows = values, lag, rows     # (N, n), (N, K+1) flat indices, (B,)
+        self.shared = {} if shared is None else shared          # row indices by column, shared by series of one lag
+
+    @property
+    def K(self) -> int:
+        return self.lag.shape[1] - 1
+
+    def now(self) -> torch.Tensor:
+        return self.values.index_select(0, self.rows)
+
+    def column(self, k: torch.Tensor) -> torch.Tensor:
+        key = tuple(k.tolist())
+        if key not in self.shared:
+            flat = (self.rows[:, None] * self.lag.shape[1] + k[None, :]).reshape(-1)
+            self.shared[key] = self.lag.reshape(-1).index_select(0, flat).view(len(self.rows), -1)
+        return self.values.gather(0, self.shared[key])
 
 
 def velocity_response(trials: Sequence, dt: float, half_width: int = 25,

@@ -23,9 +23,9 @@ the extended model is passive — its energy ½ q̇ᵀ H q̇ + V never grows wit
 Sequences: the delay needs the history of the exoskeleton torque. Samples are rows (B, ·); the exo torque
 comes either as (B, n) (current sample) or as a history (B, K+1, n), column k = k steps earlier in the same
 trial, clamped at the trial's start (`lag_table(lengths, K)` gives the flat indices to gather it), or as a
-`Lagged` series that reads only the columns the delay needs. The strap
-needs τ̇_e and τ̈_e in the same form (`exo_derivatives`); a backlash the side of its gap, `side=(s, ṡ, s̈)` (`gap_side`),
-a sensor effect that the engine's export leaves out (the limb's dynamics are the base's; its width is metadata).
+`Lagged` series that reads only the columns the delay needs. The strap needs τ̇_e and τ̈_e in the same form
+(`exo_derivatives`); a backlash the side of its gap, `side=(s, ṡ, s̈)` (`gap_side`), a sensor effect that the
+engine's export leaves out (the limb's dynamics are the base's; its width is metadata).
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from .exo_signals import exo_derivatives, lag_table, velocity_response  # noqa: F401 (re-exported)
+from .exo_signals import Lagged, exo_derivatives, lag_table, velocity_response  # noqa: F401 (re-exported)
 
 EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay",
                     "encoder_offset", "torque_bias", "torque_gain", "strap_compliance", "backlash")
@@ -46,30 +46,6 @@ EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", 
 SIZEABLE = ("viscous_damping", "coulomb_friction", "stribeck_friction", "encoder_offset", "torque_bias",
             "strap_compliance")
 COULOMB_EPS = 0.01   # rad/s (or m/s): the tanh smoothing of sign(q̇), the same in the world and the engine
-
-
-class Lagged:
-    """A series' history at B rows read on demand: `column(k)` (B, n) holds, per joint j, the sample k_j steps
-    earlier, as column k of the (B, K+1, n) history tensor does, without gathering the K+1 columns of which a
-    delay reads two (the gathers were a fifth of a delay fit's step)."""
-
-    def __init__(self, values: torch.Tensor, lag: torch.Tensor, rows: torch.Tensor, shared: dict | None = None):
-        self.values, self.lag, self.rows = values, lag, rows     # (N, n), (N, K+1) flat indices, (B,)
-        self.shared = {} if shared is None else shared          # row indices by column, shared by series of one lag
-
-    @property
-    def K(self) -> int:
-        return self.lag.shape[1] - 1
-
-    def now(self) -> torch.Tensor:
-        return self.values.index_select(0, self.rows)
-
-    def column(self, k: torch.Tensor) -> torch.Tensor:
-        key = tuple(k.tolist())
-        if key not in self.shared:
-            flat = (self.rows[:, None] * self.lag.shape[1] + k[None, :]).reshape(-1)
-            self.shared[key] = self.lag.reshape(-1).index_select(0, flat).view(len(self.rows), -1)
-        return self.values.gather(0, self.shared[key])
 
 
 def _inv_softplus(y: float) -> float:
@@ -464,8 +440,9 @@ class ExtendedModel(nn.Module):
 
         tau_e, tau_e_d, tau_e_dd: recorded exo torque and its smoothed derivatives, either (B, n) for the
         current sample or (B, K+1, n) histories (column k = k samples earlier, clamped at the trial start;
-        `lag_table` builds the indices), or `Lagged` series. The delay term needs the history. `trial` (B,): the rows' trial
-        indices, for gated (subject-specific) terms. `side`: (s, ṡ, s̈) of a backlash gap (`gap_side`).
+        `lag_table` builds the indices), or `Lagged` series. The delay term needs the history. `trial` (B,):
+        the rows' trial indices, for gated (subject-specific) terms. `side`: (s, ṡ, s̈) of a backlash gap
+        (`gap_side`).
         """
         return self.inverse_inertia(q, qd, qdd, z, f_v, tau_e, tau_e_d, tau_e_dd, trial, side)[0]
 

@@ -15,7 +15,8 @@ from dataclasses import replace
 
 import torch
 
-from ..extensions import ExtendedModel, Lagged
+from ..exo_signals import Lagged
+from ..extensions import ExtendedModel
 from . import weights
 from .flat import Flat
 from .refits import base_fit, refit

@@ -16,8 +16,7 @@ import numpy as np
 import torch
 
 from ..data import DataError, savgol_window
-from ..exo_signals import exo_derivatives, gap_side, lag_table, velocity_response
-from ..extensions import Lagged
+from ..exo_signals import Lagged, exo_derivatives, gap_side, lag_table, velocity_response
 
 DTYPE = torch.float32   # diagnosis fits run in float32 (speed); export converts to float64
 
