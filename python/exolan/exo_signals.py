@@ -22,10 +22,25 @@ def lag_table(lengths: Sequence[int], max_lag: int) -> np.ndarray:
     return np.concatenate(out, axis=0) if out else np.zeros((0, max_lag + 1), dtype=np.int64)
 
 
+class Stacked:
+    """A series' history as a gathered (B, K+1, n) tensor (column k: k samples earlier), or (B, n) for the
+    current sample alone: `now()` (B, n) and `column(k)` (B, n), per joint j the sample k_j steps earlier."""
+
+    def __init__(self, hist: torch.Tensor):
+        self.hist = hist.unsqueeze(1) if hist.dim() == 2 else hist
+        self.K = self.hist.shape[1] - 1
+
+    def now(self) -> torch.Tensor:
+        return self.hist[:, 0]
+
+    def column(self, k: torch.Tensor) -> torch.Tensor:
+        B, _, n = self.hist.shape
+        return torch.gather(self.hist, 1, k.view(1, 1, n).expand(B, 1, n))[:, 0]
+
+
 class Lagged:
-    """A series' history at B rows read on demand: `column(k)` (B, n) holds, per joint j, the sample k_j steps
-    earlier, as column k of the (B, K+1, n) history tensor does, without gathering the K+1 columns of which a
-    delay reads two (the gathers were a fifth of a delay fit's step)."""
+    """A series' history at B rows read on demand, as `Stacked` reads a gathered one, without gathering the K+1
+    columns of which a delay reads two (the gathers were a fifth of a delay fit's step)."""
 
     def __init__(self, values: torch.Tensor, lag: torch.Tensor, rows: torch.Tensor, shared: dict | None = None):
         self.values, self.lag, self.rows = values, lag, rows     # (N, n), (N, K+1) flat indices, (B,)

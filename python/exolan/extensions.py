@@ -38,7 +38,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
-from .exo_signals import Lagged, exo_derivatives, lag_table, velocity_response  # noqa: F401 (re-exported)
+from .exo_signals import Lagged, Stacked, exo_derivatives, lag_table, velocity_response  # noqa: F401 (re-exported)
 
 EFFECTS_MODELLED = ("viscous_damping", "coulomb_friction", "stribeck_friction", "actuation_delay",
                     "encoder_offset", "torque_bias", "torque_gain", "strap_compliance", "backlash")
@@ -348,32 +348,18 @@ class ExtendedModel(nn.Module):
     # -- pieces of the physics ---------------------------------------------------------------------
     @staticmethod
     def _hist(x):
-        """(B, n) -> (B, 1, n); (B, K+1, n) and `Lagged` stay: column k is the sample k steps earlier."""
-        return x if x is None or isinstance(x, Lagged) else (x.unsqueeze(1) if x.dim() == 2 else x)
-
-    @staticmethod
-    def _now(hist):
-        """The current sample (B, n) of a history."""
-        return None if hist is None else hist.now() if isinstance(hist, Lagged) else hist[:, 0]
+        """A history (`Lagged`, or a (B, K+1, n) or (B, n) tensor as `Stacked`), or None."""
+        return x if x is None or isinstance(x, Lagged) else Stacked(x)
 
     def _shift(self, hist, d: torch.Tensor) -> torch.Tensor:
         """x(t − d) per joint by linear interpolation between the two bracketing samples of the history."""
-        lagged = isinstance(hist, Lagged)
-        K = hist.K if lagged else hist.shape[1] - 1
-        if K < 1:
+        if hist.K < 1:
             raise ValueError("a delay needs the exo-torque history (B, K+1, n) with K >= 1")
-        s = torch.clamp(d / self.dt, 0.0, K - 1e-9)          # (n,) samples
+        s = torch.clamp(d / self.dt, 0.0, hist.K - 1e-9)     # (n,) samples
         k0 = torch.floor(s).detach()
         frac = s - k0                                          # differentiable in d
         k0 = k0.long()
-        if lagged:
-            x0, x1 = hist.column(k0), hist.column(k0 + 1)
-        else:
-            B, _, n = hist.shape
-            i0 = k0.view(1, 1, n).expand(B, 1, n)
-            x0 = torch.gather(hist, 1, i0)[:, 0]
-            x1 = torch.gather(hist, 1, i0 + 1)[:, 0]
-        return (1.0 - frac) * x0 + frac * x1
+        return (1.0 - frac) * hist.column(k0) + frac * hist.column(k0 + 1)
 
     def applied_exo(self, tau_e, tau_e_d=None, tau_e_dd=None, trial=None):
         """τ_e,app and its derivatives at the current sample, from (B, n) or history (B, K+1, n) inputs.
@@ -381,11 +367,12 @@ class ExtendedModel(nn.Module):
         The applied torque is the recorded one delayed by d where the delay term is active.
         """
         h, hd, hdd = self._hist(tau_e), self._hist(tau_e_d), self._hist(tau_e_dd)
+        now = lambda x: None if x is None else x.now()     # noqa: E731
         if "actuation_delay" not in self.effects:
-            return self._now(h), self._now(hd), self._now(hdd)
+            return now(h), now(hd), now(hdd)
         d = self.delay()
         m = self.mask_actuation_delay * self.gate("actuation_delay", trial)
-        sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * self._now(x)
+        sh = lambda x: None if x is None else m * self._shift(x, d) + (1 - m) * x.now()
         return sh(h), sh(hd), sh(hdd)
 
     def true_state(self, q, qd, qdd, tau_app=None, tau_app_d=None, tau_app_dd=None, trial=None, side=None):
@@ -451,7 +438,7 @@ class ExtendedModel(nn.Module):
         expose its inertia (a fit's acceleration term reuses it instead of evaluating the network again)."""
         if tau_e is None:
             tau_e = torch.zeros_like(q)
-        tau_now = self._now(self._hist(tau_e))
+        tau_now = self._hist(tau_e).now()
         tau_app, tau_app_d, tau_app_dd = self.applied_exo(tau_e, tau_e_d, tau_e_dd, trial)
         qt, qdt, qddt = self.true_state(q, qd, qdd, tau_app, tau_app_d, tau_app_dd, trial, side)
         if hasattr(self.base, "inverse_inertia"):
