@@ -25,12 +25,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def worker(data: str, steps: int) -> dict:
+def _setup(data: str):
+    """(settings, flat, a maker of the base with the given effects) for `data`, torch on one thread."""
     import copy
 
     import torch
     torch.set_num_threads(1)
-    from exolan.diagnose.fit import train
     from exolan.diagnose.flat import prepare
     from exolan.diagnose.procedure import Settings, load_trials, new_base
     from exolan.extensions import ExtendedModel
@@ -38,10 +38,17 @@ def worker(data: str, steps: int) -> dict:
     s = Settings(verbose=False)
     flat = prepare(load_trials(data), max_delay=s.max_delay, seed=s.seed)
     start = new_base(flat, s)
+    return s, flat, lambda effects: ExtendedModel(copy.deepcopy(start), flat.n, effects, dt=flat.dt,
+                                                  max_delay=s.max_delay, init={}, coupled_damping=False)
+
+
+def worker(data: str, steps: int) -> dict:
+    from exolan.diagnose.fit import train
+
+    s, flat, make = _setup(data)
     out = {}
     for name, effects in (("base", []), ("delay", [("actuation_delay", 1)])):
-        m = ExtendedModel(copy.deepcopy(start), flat.n, effects, dt=flat.dt, max_delay=s.max_delay, init={},
-                          coupled_damping=False)
+        m = make(effects)
         train(m, flat, 10, lr=s.lr_base, batch=s.batch, seed=1, w_acc=s.w_acc)     # warm-up
         t = time.perf_counter()
         hist = train(m, flat, steps, lr=s.lr_base, batch=s.batch, seed=0, w_acc=s.w_acc)
@@ -50,25 +57,16 @@ def worker(data: str, steps: int) -> dict:
 
 
 def pieces(data: str, steps: int) -> None:
-    import copy
     import threading
 
-    import torch
-    torch.set_num_threads(1)
     from exolan.diagnose.fit import train
-    from exolan.diagnose.flat import prepare
-    from exolan.diagnose.procedure import Settings, load_trials, new_base
     from exolan.diagnose.refits import FRESH_PIECES
     from exolan.diagnose.workers import Workers
-    from exolan.extensions import ExtendedModel
 
-    s = Settings(verbose=False)
-    flat = prepare(load_trials(data), max_delay=s.max_delay, seed=s.seed)
-    start = new_base(flat, s)
+    s, flat, make = _setup(data)
 
     def fit(k: int, pool) -> float:
-        m = ExtendedModel(copy.deepcopy(start), flat.n, [("actuation_delay", 1)], dt=flat.dt, max_delay=s.max_delay,
-                          init={}, coupled_damping=False)
+        m = make([("actuation_delay", 1)])
         t = time.perf_counter()
         train(m, flat, steps, lr=s.lr_base, batch=s.batch, seed=0, w_acc=0.0, weighted=False, pieces=k, pool=pool)
         return (time.perf_counter() - t) / steps * 1e3

@@ -395,7 +395,7 @@ def test_rule_3s_future_torque_null_for_a_delay_reaches_no_causal_delay():
     def applied_at_longest_delay(model):
         with torch.no_grad():
             model.delay_raw[0] = 20.0                        # sigmoid → 1: the longest delay allowed
-            return model.applied_exo(*adv.exo_hist(rows))[0][:, 0]
+            return model.applied_exo(*adv.exo_lagged(rows))[0][:, 0]
 
     te = flat.tau_e[:, 0]
     torch.testing.assert_close(applied_at_longest_delay(free), te[rows - 4], rtol=0, atol=1e-4)   # 20 ms ago

@@ -15,7 +15,6 @@ from dataclasses import replace
 
 import torch
 
-from ..exo_signals import Lagged
 from ..extensions import ExtendedModel
 from . import weights
 from .flat import Flat
@@ -47,8 +46,7 @@ def data(flat: Flat, terms: list, init: dict, max_delay: float) -> Flat:
     m = terms_model(flat, terms, init, max_delay).to(torch.float64)
     rows = torch.arange(flat.q.shape[0])
     d64 = lambda x: x.to(torch.float64)
-    shared: dict = {}
-    hist = [Lagged(d64(x), flat.lag, rows, shared) for x in (flat.tau_e, flat.tau_e_d, flat.tau_e_dd)]
+    hist = flat.exo_lagged(rows, dtype=torch.float64)
     tau_now = hist[0].now()
     app, app_d, app_dd = m.applied_exo(*hist, trial=flat.trial)
     side = tuple(d64(x) for x in (flat.side, flat.side_d, flat.side_dd)) if flat.side is not None else None

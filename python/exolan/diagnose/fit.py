@@ -33,7 +33,7 @@ def _inputs(model, base, flat: Flat, b: torch.Tensor) -> tuple:
     if not isinstance(model, ExtendedModel):
         return args
     ex = (flat.exo_lagged(b) if "actuation_delay" in model.effects
-          else (flat.tau_e[b], flat.tau_e_d[b], flat.tau_e_dd[b]))
+          else (rows(flat.tau_e), rows(flat.tau_e_d), rows(flat.tau_e_dd)))
     return args + tuple(ex)
 
 

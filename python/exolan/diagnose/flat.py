@@ -101,15 +101,12 @@ class Flat:
         who = self.user_index()
         return None if who is None else [(who[1] == k).astype(float) for k in range(len(who[0]))]
 
-    def exo_hist(self, idx: torch.Tensor):
-        """(B, K+1, n) histories of τ_e, τ̇_e, τ̈_e for the rows idx."""
-        lg = self.lag[idx]
-        return self.tau_e[lg], self.tau_e_d[lg], self.tau_e_dd[lg]
-
-    def exo_lagged(self, idx: torch.Tensor):
-        """The same histories as `Lagged` series: a delay reads two columns of each, not K+1 (a fit's hot path)."""
+    def exo_lagged(self, idx: torch.Tensor, dtype: torch.dtype | None = None):
+        """The histories of τ_e, τ̇_e, τ̈_e at rows idx as `Lagged` series (in `dtype`, default their own): a delay
+        reads two columns of each, not K+1 (a fit's hot path)."""
         shared: dict = {}
-        return tuple(Lagged(x, self.lag, idx, shared) for x in (self.tau_e, self.tau_e_d, self.tau_e_dd))
+        return tuple(Lagged(x if dtype is None else x.to(dtype), self.lag, idx, shared)
+                     for x in (self.tau_e, self.tau_e_d, self.tau_e_dd))
 
 
 SURGE_FEATURES = 5
