@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from exolan.diagnose import stats
-from exolan.diagnose.rules import above_noise, confirm, invariance_reason, invariance_rule, paired_gain
+from exolan.diagnose.rules import above_noise, confirm, gain_as_confirmed, invariance_reason, invariance_rule, paired_gain
 from exolan.diagnose.settings import Settings
 
 
@@ -53,6 +53,27 @@ def test_the_extended_models_confirmation_weights_each_task_by_its_z_score():
     for c in (confirm(e_ref, e_ref - helps, groups, "task", s, alpha=0.025),
               confirm(e_ref, e_ref - helps, np.zeros(groups.size, dtype=str), "none", s, alpha=0.025, twins=quiet)):
         assert c["combination"] == "pooled" and c["gain"] == c["pooled"]["gain"] and not c["passes"]
+
+
+def test_the_extended_models_reported_gain_is_combined_as_its_confirmation():
+    """The extended model's reported gain (the user's errors) and its interval follow the combination its
+    confirmation decided by: with the tasks weighted 1/SD the interval clears 0 where the pooled one, set by the
+    two noisy tasks, holds it (the pooled gain kept beside); with a pooled confirmation, the pooled gain."""
+    rng = np.random.default_rng(5)
+    groups = np.repeat(np.array(["run", "stairs", "lunge", "ball_toss"]), 4000)
+    noisy = np.isin(groups, ["lunge", "ball_toss"])
+    s = Settings(n_boot=300)
+    e_ref = 1e-2 + np.abs(rng.standard_normal(groups.size)) * 1e-3
+    e_ext = e_ref - (1e-4 + rng.standard_normal(groups.size) * np.where(noisy, 3e-2, 1e-3))
+    c = confirm(e_ref, e_ext, groups, "task", s, alpha=0.025, twins=[np.full(groups.size, 1e-6)] * 3)
+    g = gain_as_confirmed(e_ref, e_ext, groups, c, s)
+    assert c["passes"] and g["combination"] == c["combination"] == "tasks weighted 1/SD"
+    assert g["ci"][0] > 0 and g["pooled"]["ci"][0] < 0 < g["pooled"]["gain"]
+    w = np.array([c["weights"][n] for n in c["weights"]])
+    by_task = [np.mean((e_ref - e_ext)[groups == n]) for n in c["weights"]]
+    assert g["gain"] == pytest.approx(float(w @ by_task)) and 0 < g["rel"] < 1 and g["rel_ci"][0] > 0
+    p = gain_as_confirmed(e_ref, e_ext, groups, confirm(e_ref, e_ext, groups, "task", s, alpha=0.025), s)
+    assert p["combination"] == "pooled" and p["ci"] == p["pooled"]["ci"] and p["ci"][0] < 0
 
 
 def _by_group(theta: dict, se: dict):

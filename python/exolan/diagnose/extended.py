@@ -11,7 +11,7 @@ from .candidates import LIBRARY
 from .export import extend
 from .inference import identifiable, param_by_subject, with_refit_spread
 from .refits import metrics, refit
-from .rules import gci
+from .rules import gain_as_confirmed, gci
 from .secondlook import paired_failures, paired_record
 
 
@@ -129,10 +129,12 @@ def describe(ss, accepted: list, conf: dict, cis: dict, acc_init: dict, starts, 
     with all of them, a single-term fit holding what the others explain)."""
     flat, s, model, effs = ss.flat, ss.s, conf["model"], conf["effs"]
     extended, ro_ext = metrics(model, flat, s, starts)
-    g = ss.gain(ss.e_ref_user, conf["u_ext"])     # the user's gain: unweighted
+    # the user's (unweighted) gain, combined over tasks as the confirmation was
+    g = gain_as_confirmed(ss.e_ref_user, conf["u_ext"], ss.groups, conf["confirmation"], s)
     extended.update(terms=[f"{a}:{flat.joints[j]}" for a, j in effs], model=conf["how"],
                     confirmation=conf["confirmation"], heldout_gain=g["gain"], heldout_gain_ci=g["ci"],
-                    relative_gain=g["rel"], relative_gain_ci=g["rel_ci"],
+                    relative_gain=g["rel"], relative_gain_ci=g["rel_ci"], heldout_gain_combination=g["combination"],
+                    heldout_gain_pooled=g["pooled"],
                     parameters={f"{a}:{flat.joints[j]}": model.estimate(a, j) for a, j in effs}, rollout_gain={})
     for H in (4, 10, 20):
         if H <= s.horizon and len(starts):
