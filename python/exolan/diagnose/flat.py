@@ -57,18 +57,16 @@ class Flat:
     side_d: torch.Tensor | None = None  # its derivatives, as the measured q̇ and q̈ would show them
     side_dd: torch.Tensor | None = None
 
+    def __post_init__(self):
+        # the partnered insole input packed once: one gather a fit step instead of five and a cat
+        self._insole = (torch.cat([self.f_v[:, None], self.f_o[:, None], self.kin_o, self.surge, self.x_cop[:, None]],
+                                  -1) if self.has_partner else self.f_v)
+
     def forces(self, idx) -> torch.Tensor:
         """The insole input of the models at rows idx: f_v (B,), or with a partner (B, 11): [f_v, f_v,other/(M g),
         q, q̇, q̈ of the other hip, the 5 surge features, x_cop] (the pelvis's vertical load, tilt and fore-aft
-        acceleration, `base` module docstring; the own centre of pressure)."""
-        if not self.has_partner:
-            return self.f_v.index_select(0, idx)
-        packed = self.__dict__.get("_forces")      # built once: one gather a fit step instead of five and a cat
-        if packed is None or packed[0] is not self.f_v:
-            packed = (self.f_v, torch.cat([self.f_v[:, None], self.f_o[:, None], self.kin_o, self.surge,
-                                           self.x_cop[:, None]], -1))
-            self.__dict__["_forces"] = packed
-        return packed[1].index_select(0, idx)
+        acceleration, `base` module docstring; the own centre of pressure), packed when the Flat is made."""
+        return self._insole.index_select(0, idx)
 
     @property
     def n(self) -> int:
