@@ -445,10 +445,9 @@ def markdown(rep: dict) -> str:
         L.append(f"Extended model ({', '.join(ext.get('terms', []))}) held-out gain: {_fmt(ext['heldout_gain'], 3)} "
                  f"({U})², 95% CI {_fmt(ext.get('heldout_gain_ci'), 3)}; relative {_fmt(ext.get('relative_gain'), 3)}"
                  + (f" ({ext['model']})." if ext.get("model") else "."))
-        pooled = ext.get("heldout_gain_pooled")
-        if pooled and ext.get("heldout_gain_combination", "pooled") != "pooled":
+        if (pl := ext.get("heldout_gain_pooled")) and ext.get("heldout_gain_combination", "pooled") != "pooled":
             L.append(f"- that gain combines the {ext['heldout_gain_combination']} as the confirmation did; pooled over "
-                     f"the samples: {_fmt(pooled['gain'], 3)} CI {_fmt(pooled['ci'], 3)}")
+                     f"the samples: {_fmt(pl['gain'], 3)} CI {_fmt(pl['ci'], 3)}")
         cf = ext.get("confirmation")
         if cf:
             L.append(f"- confirmed against {cf['against']}: {_fmt(cf['gain'], 3)} ({U})², "
