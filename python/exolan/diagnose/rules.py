@@ -118,13 +118,18 @@ def balanced(gg: dict, names: list[str], alpha: float = 0.05) -> dict:
     docs/DIAGNOSIS.md, "Measurements behind the code"."""
     w = np.array([1.0 / max(gg["sd"][g], 1e-300) for g in names])      # the floor: a noise-free group
     w /= w.sum()
+    gain, se, ci, z = _weighted(gg, names, w, alpha)
+    sigma = float(np.sqrt(np.mean((w @ np.array([gg["twin"][g] for g in names])) ** 2)))
+    return dict(gain=gain, ci=ci, se=se, refit_sd=sigma,
+                above_noise=bool(gain - z * math.sqrt(se ** 2 + sigma ** 2) > 0), weights={g: float(v) for g, v in zip(names, w)})
+
+
+def _weighted(gg: dict, names: list[str], w: np.ndarray, alpha: float) -> tuple[float, float, list, float]:
+    """The groups' gains combined with weights w (independent groups): (gain, SE, normal interval at 1 − alpha, z)."""
     gain = float(w @ np.array([gg["gain"][g] for g in names]))
     se = float(math.sqrt(np.sum(np.square(w * np.array([gg["se"][g] for g in names])))))
-    sigma = float(np.sqrt(np.mean((w @ np.array([gg["twin"][g] for g in names])) ** 2)))
     z = float(scipy_stats.norm.ppf(1 - alpha / 2))
-    return dict(gain=gain, ci=[gain - z * se, gain + z * se], se=se, refit_sd=sigma,
-                above_noise=bool(gain - z * math.sqrt(se ** 2 + sigma ** 2) > 0),
-                weights={g: float(v) for g, v in zip(names, w)})
+    return gain, se, [gain - z * se, gain + z * se], z
 
 
 def invariance_rule(d: np.ndarray, groups: np.ndarray, kind: str, s: Settings, by_group=None, neutral: float = 0.0,
@@ -296,12 +301,8 @@ def gain_as_confirmed(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndar
         return dict(pooled, combination="pooled", pooled=pooled)
     names = list(weights)
     w = np.array([weights[n] for n in names])
-    gg = group_gains(np.asarray(e_before) - np.asarray(e_after), groups, s)
-    gain = float(w @ [gg["gain"][n] for n in names])
-    se = float(math.sqrt(np.sum(np.square(w * np.array([gg["se"][n] for n in names])))))
-    z = float(scipy_stats.norm.ppf(1 - alpha / 2))
+    gain, _, ci, _ = _weighted(group_gains(np.asarray(e_before) - np.asarray(e_after), groups, s), names, w, alpha)
     base = float(w @ [np.mean(np.asarray(e_before)[groups == n]) for n in names])
-    ci = [gain - z * se, gain + z * se]
     return dict(gain=gain, ci=ci, rel=gain / base, rel_ci=[c / base for c in ci],
                 combination=confirmation["combination"], weights=dict(weights), pooled=pooled)
 
