@@ -1,7 +1,8 @@
 """The decision rules of the learned path on held-out errors: the paired gain (rule 1), beyond the refit noise
 (rule 2), a property of the joint and not of a task (rule 5), the tasks' gains combined (`balanced`), the
-extended model's confirmation (`confirm`) and a term's own share of its fit (`term_share`). Pure functions of
-arrays and `Settings`: no fitting here. The levels they run at come from `settings.Budget`."""
+extended model's confirmation (`confirm`) and its reported gain (`gain_as_confirmed`), a term's own share of its
+fit (`term_share`). Pure functions of arrays and `Settings`: no fitting here. The levels they run at come from
+`settings.Budget`."""
 from __future__ import annotations
 
 import math
@@ -121,7 +122,8 @@ def balanced(gg: dict, names: list[str], alpha: float = 0.05) -> dict:
     gain, se, ci, z = _weighted(gg, names, w, alpha)
     sigma = float(np.sqrt(np.mean((w @ np.array([gg["twin"][g] for g in names])) ** 2)))
     return dict(gain=gain, ci=ci, se=se, refit_sd=sigma,
-                above_noise=bool(gain - z * math.sqrt(se ** 2 + sigma ** 2) > 0), weights={g: float(v) for g, v in zip(names, w)})
+                above_noise=bool(gain - z * math.sqrt(se ** 2 + sigma ** 2) > 0),
+                weights={g: float(v) for g, v in zip(names, w)})
 
 
 def _weighted(gg: dict, names: list[str], w: np.ndarray, alpha: float) -> tuple[float, float, list, float]:
@@ -293,7 +295,8 @@ def gain_as_confirmed(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndar
     block-bootstrap SE (independent groups, a normal interval at level 1 − alpha) and the relative gain over the
     base's error in the same combination; where it pooled, the pooled `paired_gain`. The pooled gain stays in
     `pooled`. One statistic for the claim and its interval: pooled beside a combined decision, the interval is
-    set by the noisiest task and can hold 0 for a model the confirmation handed over (knee damping, seed 9826)."""
+    set by the noisiest task and can hold 0 for a model the confirmation handed over (docs/DIAGNOSIS.md, "The
+    extended model's reported gain, combined as its confirmation")."""
     g = paired_gain(e_before, e_after, s, alpha=alpha)
     pooled = dict(gain=g["gain"], ci=g["ci"], rel=g["rel"], rel_ci=g["rel_ci"])
     weights = confirmation.get("weights")
