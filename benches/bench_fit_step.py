@@ -74,7 +74,10 @@ def pieces(data: str, steps: int) -> None:
     def two(k: int) -> list[float]:
         out: list = []
         ths = [threading.Thread(target=lambda: out.append(fit(k, Workers(1)))) for _ in range(2)]
-        [t.start() for t in ths], [t.join() for t in ths]
+        for t in ths:
+            t.start()
+        for t in ths:
+            t.join()
         return out
 
     fit(1, None)        # warm-up
