@@ -39,6 +39,23 @@ def test_map_keeps_the_order_and_never_runs_more_than_n_at_once():
     assert Workers(1).map([lambda i=i: i for i in range(5)]) == list(range(5))
 
 
+def test_a_permit_freed_by_a_shorter_list_goes_to_a_longer_lists_work():
+    """Two jobs each map a nested list (one fit, then three): once the short list is done its thread waits and its
+    permit goes to the long list's work nobody has taken, so that list runs on two threads, not one after the
+    other on the thread that took it (a paired look's two base fits beside its four fits with the terms)."""
+    w, busy, threads = Workers(2), Busy(), {}
+
+    def job(name):
+        threads[name] = threading.get_ident()
+        busy.run(0.2)
+        return name
+    out = w.map([lambda: w.map([lambda: job("short")]),
+                 lambda: w.map([lambda i=i: job(f"long{i}") for i in range(3)])])
+    assert out == [["short"], ["long0", "long1", "long2"]]
+    assert len({threads[f"long{i}"] for i in range(3)}) > 1
+    assert busy.peak == 2
+
+
 def test_an_error_in_one_job_reaches_the_caller():
     def boom():
         raise ValueError("bad fit")

@@ -6,7 +6,9 @@ one after the other (measured: two fits from scratch of the 4-user world, 1.82x,
 docs/DIAGNOSIS.md, "Time"). Why not a `concurrent.futures` pool: a candidate's task asks for further fits (its
 second look's seeds) from inside a worker, and a fixed pool whose workers wait on their own sub-tasks deadlocks.
 Here the caller always works through its own list, and takes a free slot for a helper thread where one is
-left, so the run never holds more than `n` threads busy and a nested call cannot wait on itself. `Ahead`: one
+left, so the run never holds more than `n` threads busy and a nested call cannot wait on itself; a slot freed
+later goes to a list whose work nobody has taken yet (one thread's nested list of four fits beside another's of
+two would otherwise leave a core to the pieces of one fit once the shorter list is done). `Ahead`: one
 fit started before it is known to be needed, on a permit of the same pool, cancelled at its next progress tick."""
 from __future__ import annotations
 
@@ -28,6 +30,8 @@ class Workers:
         self._guard = threading.Lock()
         self._locks: dict = {}
         self._ahead: list = []      # every `Ahead` started on this pool (`running` cancels them when the run ends)
+        self._open: list = []       # the `recruit` of every map with work left, offered each freed permit
+        self._wanting = 0           # threads taking their permit back after a wait: they come first
 
     def _holds(self) -> bool:
         return getattr(self._held, "permit", False)
@@ -39,6 +43,16 @@ class Workers:
     def _give(self) -> None:
         self._held.permit = False
         self._permits.release()
+        self._offer()
+
+    def _offer(self) -> None:
+        """A freed permit to a map's work that no thread has taken yet, unless a thread waits to take one back."""
+        with self._guard:
+            if self._wanting:
+                return
+            open_ = list(self._open)
+        for recruit in open_:
+            recruit()
 
     def wait(self, block: Callable) -> None:
         """Run `block()` (a wait) without holding a permit, then take one again."""
@@ -49,7 +63,14 @@ class Workers:
             block()
         finally:
             if held:
-                self._take()
+                with self._guard:
+                    self._wanting += 1
+                try:
+                    self._take()
+                finally:
+                    with self._guard:
+                        self._wanting -= 1
+                self._offer()                # a permit skipped while this thread wanted one
 
     def map(self, fns: Sequence[Callable]) -> list:
         fns = list(fns)
@@ -82,20 +103,27 @@ class Workers:
                 self._give()
 
         def recruit():
-            # a helper for the work left beyond the one this thread takes next, while permits are free
+            # a helper for work nobody has taken, while a permit is free (helpers busy on an item take no other)
             with lock:
                 t = None
-                if len(todo) > len(helpers) and self._permits.acquire(blocking=False):
+                if todo and not failed and self._permits.acquire(blocking=False):
                     t = threading.Thread(target=helper, daemon=True)
                     helpers.append(t)
             if t is not None:
                 t.start()
 
+        with self._guard:
+            self._open.append(recruit)
         try:
             drain()
+            with self._guard:
+                self._open.remove(recruit)
             for t in list(helpers):
                 self.wait(t.join)
         finally:
+            with self._guard:
+                if recruit in self._open:
+                    self._open.remove(recruit)
             if entered:
                 self._give()
         if failed:
