@@ -84,6 +84,8 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
         tried.append(f"{gci(g_h)} as the reference's refit with the terms held there (beyond the refit noise required)")
     if not out["confirmed"] and pr is None:
         _from_scratch_look(ss, out, key, alpha, (u_ext, d_ext), (base_0, against), by_seeds, tried, acc_init)
+    elif ss.optima_ahead is not None:       # its base, started ahead for that look, is not wanted
+        ss.optima_ahead.cancel()
     if not out["confirmed"]:
         for e in accepted:
             e.update(status="ambiguous", reason=(

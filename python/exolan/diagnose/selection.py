@@ -53,16 +53,22 @@ def forward(ss, results: list) -> Selection:
         pool[:] = [e for e, a in zip(pool, adds) if a]
     if ahead is not None and ahead[0] != tuple(sorted(sel.accepted)):
         ahead[1].cancel()
+        if ss.cache.recipe(ahead[0]) != ss.cache.recipe(tuple(sorted(sel.accepted))):
+            ahead[2].cancel()
     return sel
 
 
 def _extended_ahead(ss, sel: Selection) -> tuple:
     """Step 7's fit from scratch of the terms accepted so far (`extended.joint_fit` asks the fits' cache for the
     same terms and starts), started while the selection tests the rest: most often nothing more is accepted, and
-    the selection's lone warm refits leave a core free. The cache makes it once, so the bits are the same.
-    Returns (its terms, the `workers.Ahead`)."""
+    the selection's lone warm refits leave a core free. Beside it, what that fit is judged against where the
+    reference's refit with the terms held does not confirm them (`extended.confirm_model`'s from-scratch look):
+    the term-free base fitted from scratch with the same recipe and its optimum twins (`FitCache.optima`), three
+    fits that would otherwise start only after it, one at a time. The caches make each once, so the bits are the
+    same. Returns (its terms, the fit's `workers.Ahead`, the optima's)."""
     key, init = tuple(sorted(sel.accepted)), dict(sel.acc_init)
-    return key, Ahead(ss.workers, lambda: ss.cache.fresh(key, init))
+    ss.optima_ahead = Ahead(ss.workers, lambda: ss.cache.optima(key))
+    return key, Ahead(ss.workers, lambda: ss.cache.fresh(key, init)), ss.optima_ahead
 
 
 def _settle(ss, top, pool: list, j: int, sel: Selection):

@@ -65,6 +65,7 @@ class Session:
     warm_fits: dict = field(default_factory=dict)   # sorted terms -> the reference refitted warm with them
     workers: Workers = field(default_factory=Workers)  # independent fits side by side (one per candidate, per seed)
     first_twin: Ahead | None = None  # twin 0 of the refit noise, started beside the reference's refit (`procedure`)
+    optima_ahead: Ahead | None = None  # step 7's from-scratch comparison base, started in selection (`selection`)
 
     @property
     def n_candidates(self) -> int:
