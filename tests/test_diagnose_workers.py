@@ -320,3 +320,26 @@ def test_the_extended_model_is_fitted_from_scratch_beside_the_forward_selection(
     assert [step for key, step in made2 if key == ext] == ["5/7 forward selection"]
     assert [key for key, _ in made1].count(ext) == 1
     assert _without_timings(one) == _without_timings(two)
+
+
+def test_step_7s_comparison_base_is_started_ahead_beside_the_terms_fit():
+    """`selection._extended_ahead` starts, beside the accepted terms' fit from scratch, what step 7's from-scratch
+    look judges it against (`FitCache.optima`: the term-free base with the terms' recipe and its optimum twins),
+    both on permits of the pool, side by side, and keeps the latter on the session for step 7 to cancel."""
+    from types import SimpleNamespace
+    from exolan.diagnose import selection
+    busy = Busy()
+
+    class Cache:
+        def fresh(self, key, init):
+            busy.run(0.2)
+            return ("fresh", key)
+
+        def optima(self, key):
+            busy.run(0.2)
+            return ("optima", key)
+    ss = SimpleNamespace(workers=Workers(2), cache=Cache(), optima_ahead=None)
+    sel = SimpleNamespace(accepted=[("viscous_damping", 0)], acc_init={})
+    key, fresh, optima = selection._extended_ahead(ss, sel)
+    assert fresh.result() == ("fresh", key) and optima.result() == ("optima", key)
+    assert ss.optima_ahead is optima and busy.peak == 2
