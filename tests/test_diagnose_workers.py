@@ -56,6 +56,24 @@ def test_a_permit_freed_by_a_shorter_list_goes_to_a_longer_lists_work():
     assert busy.peak == 2
 
 
+def test_a_helper_recruited_by_another_threads_offer_is_started_before_its_list_is_joined(monkeypatch):
+    """A permit given back on one thread recruits a helper for a map another thread owns; where that helper's
+    thread is slow to start, the owner may run out of work first and join its helpers: it must never meet one not
+    yet started (seen once in a test run beside a CPU hog: "cannot join thread before it is started")."""
+    from exolan.diagnose import workers as W
+
+    class SlowStart(threading.Thread):
+        def start(self):
+            time.sleep(0.2)             # the recruiting thread preempted between listing and starting it
+            super().start()
+    monkeypatch.setattr(W.threading, "Thread", SlowStart)
+    w = Workers(2)
+    # main: 0.05 s, then waits for its helper, whose nested map holds 0.1 s and a tiny item; the permit main gives
+    # back recruits a (slow) helper for the tiny item while the nested map's owner is still busy
+    out = w.map([lambda: time.sleep(0.05) or "a", lambda: w.map([lambda: time.sleep(0.1) or "b", lambda: "c"])])
+    assert out == ["a", ["b", "c"]]
+
+
 def test_an_error_in_one_job_reaches_the_caller():
     def boom():
         raise ValueError("bad fit")

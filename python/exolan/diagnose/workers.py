@@ -103,14 +103,13 @@ class Workers:
                 self._give()
 
         def recruit():
-            # a helper for work nobody has taken, while a permit is free (helpers busy on an item take no other)
+            # a helper for work nobody has taken, while a permit is free (helpers busy on an item take no other);
+            # started under the lock: another thread's offer may recruit it, and the owner joins what it sees listed
             with lock:
-                t = None
                 if todo and not failed and self._permits.acquire(blocking=False):
                     t = threading.Thread(target=helper, daemon=True)
+                    t.start()
                     helpers.append(t)
-            if t is not None:
-                t.start()
 
         with self._guard:
             self._open.append(recruit)
