@@ -343,7 +343,8 @@ def test_the_extended_model_is_fitted_from_scratch_beside_the_forward_selection(
 def test_step_7s_comparison_base_is_started_ahead_beside_the_terms_fit():
     """`selection._extended_ahead` starts, beside the accepted terms' fit from scratch, what step 7's from-scratch
     look judges it against (`FitCache.optima`: the term-free base with the terms' recipe and its optimum twins),
-    both on permits of the pool, side by side, and keeps the latter on the session for step 7 to cancel."""
+    both on permits of the pool, side by side, the fit first, and keeps the latter on the session for step 7 to
+    cancel."""
     from types import SimpleNamespace
     from exolan.diagnose import selection
     busy = Busy()
@@ -358,6 +359,6 @@ def test_step_7s_comparison_base_is_started_ahead_beside_the_terms_fit():
             return ("optima", key)
     ss = SimpleNamespace(workers=Workers(2), cache=Cache(), optima_ahead=None)
     sel = SimpleNamespace(accepted=[("viscous_damping", 0)], acc_init={})
-    key, fresh, optima = selection._extended_ahead(ss, sel)
-    assert fresh.result() == ("fresh", key) and optima.result() == ("optima", key)
-    assert ss.optima_ahead is optima and busy.peak == 2
+    key, fresh = selection._extended_ahead(ss, sel)
+    assert fresh.result() == ("fresh", key) and ss.optima_ahead.result() == ("optima", key)
+    assert busy.peak == 2

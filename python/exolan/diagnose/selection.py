@@ -53,8 +53,8 @@ def forward(ss, results: list) -> Selection:
         pool[:] = [e for e, a in zip(pool, adds) if a]
     if ahead is not None and ahead[0] != tuple(sorted(sel.accepted)):
         ahead[1].cancel()
-        if ss.cache.recipe(ahead[0]) != ss.cache.recipe(tuple(sorted(sel.accepted))):
-            ahead[2].cancel()
+        if ss.optima_ahead is not None and ss.cache.recipe(ahead[0]) != ss.cache.recipe(tuple(sorted(sel.accepted))):
+            ss.optima_ahead.cancel()
     return sel
 
 
@@ -64,11 +64,16 @@ def _extended_ahead(ss, sel: Selection) -> tuple:
     the selection's lone warm refits leave a core free. Beside it, what that fit is judged against where the
     reference's refit with the terms held does not confirm them (`extended.confirm_model`'s from-scratch look):
     the term-free base fitted from scratch with the same recipe and its optimum twins (`FitCache.optima`), three
-    fits that would otherwise start only after it, one at a time. The caches make each once, so the bits are the
-    same. Returns (its terms, the fit's `workers.Ahead`, the optima's)."""
+    fits that would otherwise start only after it, one at a time; started by the fit once it holds its permit (the
+    fit is always wanted, they only where that look is made: they must not take its place), and kept on the
+    session (`ss.optima_ahead`) for step 7 to cancel. The caches make each once, so the bits are the same.
+    Returns (its terms, the fit's `workers.Ahead`)."""
     key, init = tuple(sorted(sel.accepted)), dict(sel.acc_init)
-    ss.optima_ahead = Ahead(ss.workers, lambda: ss.cache.optima(key))
-    return key, Ahead(ss.workers, lambda: ss.cache.fresh(key, init)), ss.optima_ahead
+
+    def fresh():
+        ss.optima_ahead = Ahead(ss.workers, lambda: ss.cache.optima(key))
+        return ss.cache.fresh(key, init)
+    return key, Ahead(ss.workers, fresh)
 
 
 def _settle(ss, top, pool: list, j: int, sel: Selection):
