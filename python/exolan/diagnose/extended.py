@@ -40,6 +40,8 @@ def joint_fit(ss, results: list, acc_init: dict):
                 f"or a bound"))
             ss.log(f"{e['effect']} {e['joint']}: {e['reason']}")
         accepted = [e for e in accepted if e not in unconfirmed]
+    if ss.optima_ahead is not None:         # no model to confirm: the comparison base started ahead is not wanted
+        ss.optima_ahead.cancel()
     return [], None, {}
 
 
