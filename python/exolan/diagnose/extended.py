@@ -40,8 +40,6 @@ def joint_fit(ss, results: list, acc_init: dict):
                 f"or a bound"))
             ss.log(f"{e['effect']} {e['joint']}: {e['reason']}")
         accepted = [e for e in accepted if e not in unconfirmed]
-    if ss.optima_ahead is not None:         # no model to confirm: the comparison base started ahead is not wanted
-        ss.optima_ahead.cancel()
     return [], None, {}
 
 
@@ -86,8 +84,6 @@ def confirm_model(ss, accepted: list, model, acc_init: dict) -> dict:
         tried.append(f"{gci(g_h)} as the reference's refit with the terms held there (beyond the refit noise required)")
     if not out["confirmed"] and pr is None:
         _from_scratch_look(ss, out, key, alpha, (u_ext, d_ext), (base_0, against), by_seeds, tried, acc_init)
-    elif ss.optima_ahead is not None:       # its base, started ahead for that look, is not wanted
-        ss.optima_ahead.cancel()
     if not out["confirmed"]:
         for e in accepted:
             e.update(status="ambiguous", reason=(

@@ -286,11 +286,12 @@ def learned_path(ss: Session, trials, phys, adequate, base_source: str, noise: d
     step(s, "7/7 extended model")
     accepted, model, cis = extended.joint_fit(ss, results, sel.acc_init)     # 7. the extended model
     ext_model, ext_rep, ro_ext = None, None, None
-    if accepted:
-        conf = extended.confirm_model(ss, accepted, model, sel.acc_init)
-        if conf["confirmed"]:
-            ext_model = conf["model"]
-            ext_rep, ro_ext = extended.describe(ss, accepted, conf, cis, sel.acc_init, starts, ro_base)
+    conf = extended.confirm_model(ss, accepted, model, sel.acc_init) if accepted else None
+    if ss.optima_ahead is not None:     # step 7's looks are made: the comparison base started ahead is not wanted
+        ss.optima_ahead.cancel()
+    if conf is not None and conf["confirmed"]:
+        ext_model = conf["model"]
+        ext_rep, ro_ext = extended.describe(ss, accepted, conf, cis, sel.acc_init, starts, ro_base)
     extended.notes(ss, results, ext_model, limits)
     for e in results:
         if e["status"] in ("accepted", "ambiguous") and e["kind"] == "finding":

@@ -115,14 +115,11 @@ class Workers:
             self._open.append(recruit)
         try:
             drain()
-            with self._guard:
-                self._open.remove(recruit)
             for t in list(helpers):
                 self.wait(t.join)
         finally:
             with self._guard:
-                if recruit in self._open:
-                    self._open.remove(recruit)
+                self._open.remove(recruit)
             if entered:
                 self._give()
         if failed:
