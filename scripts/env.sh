@@ -27,8 +27,9 @@ if [ "$(cat "$deps_stamp" 2>/dev/null)" != "$deps_hash" ]; then
         echo "[exolan] warning: $((free_kb / 1024)) MiB free on the disk of $ROOT; the Python dependencies need" \
              "about 8 GiB while they install (6 GiB after). Free some space if pip fails." >&2
     fi
-    echo "[exolan] installing pinned Python dependencies (torch included; pip's cache serves re-runs)"
-    python -m pip install -q --upgrade pip
+    # no pip cache: it would hold a second copy of the ~3 GB of wheels on the same disk
+    echo "[exolan] installing pinned Python dependencies (torch included)"
+    python -m pip install -q --no-cache-dir pip==26.3
     reqs="$(python - <<'PYEOF'
 import tomllib
 p = tomllib.load(open("pyproject.toml", "rb"))
@@ -38,7 +39,7 @@ print("\n".join(deps))
 PYEOF
 )"
     # shellcheck disable=SC2086
-    python -m pip install -q $reqs
+    python -m pip install -q --no-cache-dir $reqs
     echo "$deps_hash" > "$deps_stamp"
 fi
 
