@@ -20,7 +20,8 @@ hash_of() { cat "$@" 2>/dev/null | sha256sum | cut -c1-16; }
 deps_stamp="$VENV/.exolan-deps"
 deps_hash="$(hash_of pyproject.toml)"
 if [ "$(cat "$deps_stamp" 2>/dev/null)" != "$deps_hash" ]; then
-    # torch's CUDA build with its nvidia packages takes ~6.5 GB in .venv and ~9.5 GB at the peak of pip's install (measured from a fresh clone, no cache):
+    # torch's CUDA build with its nvidia packages takes ~6.5 GB in .venv, ~9.5 GB at the peak of pip's install
+    # (measured from a fresh clone, no cache):
     # say so up front rather than leave pip's "No space left on device" halfway through the install
     free_kb="$(df -Pk "$ROOT" | awk 'NR==2 {print $4}')"
     if [ -n "$free_kb" ] && [ "$free_kb" -lt $((10 * 1024 * 1024)) ]; then
