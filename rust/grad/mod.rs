@@ -18,6 +18,7 @@ mod dispatch;
 mod head;
 mod mlp;
 mod net;
+mod potential;
 mod tape;
 mod terms;
 

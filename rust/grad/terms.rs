@@ -4,6 +4,7 @@
 use super::dispatch::KernelReal;
 use super::head::{self, Lanes, Num, Outs, MMAX, NMAX};
 use super::net::{self, BackBufs, Net, Tile};
+use super::potential::{self, PotBufs};
 use super::tape::Tape;
 use super::{check_net, sum_chunks, unpad, LayerRef, NetGrads, CHUNK_TILES, TILE};
 use crate::error::{Error, Result};
@@ -140,11 +141,11 @@ impl<T: Real> TermsKernel<T> {
     /// Values of one tile's tape: x, ∂φ/∂q, then each network's blocks.
     fn tile_len(&self) -> usize {
         let rows = self.streams() * TILE;
-        TILE * self.l.layers[0].ip + TILE * self.n * 2 + self.l.tape_len(rows) + self.v.tape_len(rows)
+        TILE * self.l.layers[0].ip + TILE * self.n * 2 + self.l.tape_len(rows) + potential::tape_len(&self.v, TILE, self.n)
     }
 
     fn width(&self) -> usize {
-        self.l.width().max(self.v.width())
+        self.l.width()
     }
 }
 
@@ -208,11 +209,12 @@ const HL: usize = 16;
 type Ln<T> = Lanes<T, HL>;
 const _: () = assert!(TILE % HL == 0);
 
-/// The network outputs of samples r0..r0+HL of a tile from the output blocks of its tape.
+/// The network outputs of samples r0..r0+HL of a tile from its tape: the inertia network's output block and
+/// the potential's g/v_scale (`gq`, TILE × n).
 #[inline(always)]
-fn outs_of<T: Real>(k: &TermsKernel<T>, lo: &[T], vo: &[T], r0: usize) -> (Outs<Ln<T>>, [Ln<T>; NMAX]) {
+fn outs_of<T: Real>(k: &TermsKernel<T>, lo: &[T], gq: &[T], r0: usize) -> (Outs<Ln<T>>, [Ln<T>; NMAX]) {
     let (n, m) = (k.n, k.n * (k.n + 1) / 2);
-    let (opl, opv) = (k.l.layers.last().unwrap().op, k.v.layers.last().unwrap().op);
+    let opl = k.l.layers.last().unwrap().op;
     let z = Ln::<T>::default();
     let mut o = Outs { u: [z; MMAX], ud: [[z; MMAX]; NMAX] };
     let mut gv = [z; NMAX];
@@ -226,7 +228,7 @@ fn outs_of<T: Real>(k: &TermsKernel<T>, lo: &[T], vo: &[T], r0: usize) -> (Outs<
             for i in 0..m {
                 o.ud[kk][i].0[l] = lo[row * opl + i];
             }
-            gv[kk].0[l] = vo[row * opv];
+            gv[kk].0[l] = gq[r * n + kk];
         }
     }
     (o, gv)
@@ -275,8 +277,8 @@ pub(super) fn forward_chunk<T: Real, const FMA: bool, const WIDE: bool>(job: &Fw
         let (lt, vt) = rest.split_at_mut(k.l.tape_len(rows));
         let tile = Tile { t: TILE, s, x, dphi, cols: &k.cols };
         net::forward::<T, FMA, WIDE>(&k.l, &tile, lt);
-        net::forward::<T, FMA, WIDE>(&k.v, &tile, vt);
-        let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[k.v.out_offset(rows)..]);
+        potential::forward::<T, FMA, WIDE>(&k.v, &tile, vt);
+        let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[potential::g_offset(&k.v, TILE, n)..]);
         let of = |x: T| Ln::<T>::of(x.to_f64());
         for r0 in (0..count).step_by(HL) {
             let (o, gv) = outs_of(k, lo_t, vo_t, r0);
@@ -300,9 +302,10 @@ pub(super) fn backward_chunk<T: KernelReal, const FMA: bool, const WIDE: bool>(j
     let (n, s, dz) = (k.n, k.streams(), k.dz);
     let rows = s * TILE;
     let (ip0, tl) = (k.l.layers[0].ip, k.tile_len());
-    let (opl, opv) = (k.l.layers.last().unwrap().op, k.v.layers.last().unwrap().op);
+    let opl = k.l.layers.last().unwrap().op;
     let samples = job.tape.samples;
     let mut bufs = BackBufs::new(rows * k.width());
+    let mut pbufs = PotBufs::new(&k.v, TILE);
     let mut gx = vec![T::default(); TILE * ip0];
     let mut gdphi = vec![T::default(); TILE * n * 2];
     let (gl, gv_) = grad.split_at_mut(k.l.grad_len());
@@ -317,10 +320,10 @@ pub(super) fn backward_chunk<T: KernelReal, const FMA: bool, const WIDE: bool>(j
         let (dphi, rest) = rest.split_at(TILE * n * 2);
         let (lt, vt) = rest.split_at(k.l.tape_len(rows));
         let tile = Tile { t: TILE, s, x, dphi, cols: &k.cols };
-        let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[k.v.out_offset(rows)..]);
+        let (lo_t, vo_t) = (&lt[k.l.out_offset(rows)..], &vt[potential::g_offset(&k.v, TILE, n)..]);
         // the head's reverse, sample by sample, into the output blocks' gradients
         let mut gu_l = vec![T::default(); rows * opl];
-        let mut gu_v = vec![T::default(); rows * opv];
+        let mut gu_v = vec![T::default(); TILE * n];
         let m = n * (n + 1) / 2;
         let of = |x: T| Ln::<T>::of(x.to_f64());
         let nn = n * n;
@@ -341,7 +344,7 @@ pub(super) fn backward_chunk<T: KernelReal, const FMA: bool, const WIDE: bool>(j
                     for i in 0..m {
                         gu_l[row * opl + i] = back.ud[kk][i].0[l];
                     }
-                    gu_v[row * opv] = back.gv[kk].0[l];
+                    gu_v[r * n + kk] = back.gv[kk].0[l];
                 }
             }
             scatter(&back.qd[..n], n, dqd, ti * TILE + r0, c);
@@ -350,8 +353,7 @@ pub(super) fn backward_chunk<T: KernelReal, const FMA: bool, const WIDE: bool>(j
         gdphi.fill(T::default());
         bufs.g[..rows * opl].copy_from_slice(&gu_l);
         net::backward::<T, FMA, WIDE>(&k.l, &tile, lt, &mut bufs, gl, &mut gx, &mut gdphi);
-        bufs.g[..rows * opv].copy_from_slice(&gu_v);
-        net::backward::<T, FMA, WIDE>(&k.v, &tile, vt, &mut bufs, gv_, &mut gx, &mut gdphi);
+        potential::backward::<T, FMA, WIDE>(&k.v, &tile, vt, &gu_v, &mut pbufs, gv_, &mut gx, &mut gdphi);
         // x̄ and ∂φ/∂q's gradient to q̄ (φ = cos, sin: ∂/∂q of (cos, sin, −sin, cos) = (−sin, cos, −cos, −sin)); z̄
         for r in 0..count {
             let e = ti * TILE + r;
