@@ -1,6 +1,6 @@
 """One diagnosis fit step, this tree against another: the base model and the base with an actuation delay (whose
 fits read the exo torque's history), batch 4096, one torch thread, as the diagnosis fits them; prints each tree's
-best ms per step, the ratio, and whether the two trees' losses after the same steps are the same bits.
+best ms per step, the ratio, and whether the two trees' weights after the same steps are the same bits.
 
     python benches/bench_fit_step.py [--data DIR] [--against REV] [--steps 150] [--repeats 3]
     python benches/bench_fit_step.py --pieces [--data DIR]
@@ -42,6 +42,13 @@ def _setup(data: str):
                                                   max_delay=s.max_delay, init={}, coupled_damping=False)
 
 
+def _digest(model) -> str:
+    """A hash of every weight's bits: two trees' fits are the same only if this is."""
+    import hashlib
+
+    return hashlib.sha256(b"".join(p.detach().numpy().tobytes() for p in model.parameters())).hexdigest()
+
+
 def worker(data: str, steps: int) -> dict:
     from exolan.diagnose.fit import train
 
@@ -52,7 +59,7 @@ def worker(data: str, steps: int) -> dict:
         train(m, flat, 10, lr=s.lr_base, batch=s.batch, seed=1, w_acc=s.w_acc)     # warm-up
         t = time.perf_counter()
         hist = train(m, flat, steps, lr=s.lr_base, batch=s.batch, seed=0, w_acc=s.w_acc)
-        out[name] = dict(ms=(time.perf_counter() - t) / steps * 1e3, loss=hist[-1])
+        out[name] = dict(ms=(time.perf_counter() - t) / steps * 1e3, loss=hist[-1], weights=_digest(m))
     return out
 
 
@@ -127,9 +134,9 @@ def main() -> None:
     for m in best["this tree"]:
         line = f"  {m:6s} this tree {best['this tree'][m]:.2f}"
         if a.against:
-            same = runs["this tree"][0][m]["loss"] == runs[a.against][0][m]["loss"]
+            same = runs["this tree"][0][m].get("weights") == runs[a.against][0][m].get("weights")
             line += (f"  {a.against} {best[a.against][m]:.2f}  ratio {best[a.against][m] / best['this tree'][m]:.2f}x"
-                     f"  loss after {a.steps} steps {'the same bits' if same else 'DIFFERS'}")
+                     f"  weights after {a.steps} steps {'the same bits' if same else 'DIFFER'}")
         print(line)
 
 
