@@ -158,7 +158,7 @@ fn coriolis_parts<T: Num>(n: usize, f: &Factor<T>, qd: &[T]) -> Coriolis<T> {
 }
 
 /// Forward: L (n×n, row-major, zeros above the diagonal), H, c and g of one sample; `gv[k]` is the
-/// potential network's q_k-tangent (g = v_scale · gv).
+/// potential network's q_k-derivative (g = v_scale · gv).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn forward<T: Num>(n: usize, o: &Outs<T>, gv: &[T], qd: &[T], offset: T, v_scale: T,
@@ -191,7 +191,7 @@ pub(crate) fn forward<T: Num>(n: usize, o: &Outs<T>, gv: &[T], qd: &[T], offset:
 }
 
 /// The gradients a sample's head sends back: to the inertia network's outputs and tangents, to the
-/// potential network's tangents, and to q̇.
+/// potential network's q-derivatives, and to q̇.
 pub(crate) struct Back<T> {
     pub u: [T; MMAX],
     pub ud: [[T; MMAX]; NMAX],

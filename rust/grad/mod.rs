@@ -1,7 +1,7 @@
 //! The training kernels: networks with a hand-written reverse pass.
 //!
-//! `TermsKernel::forward` computes what `delan.Lagrangian.factor_terms` computes (L, H = L Lᵀ, c, g, from the
-//! inertia and potential networks with their q-tangents carried forward), optionally keeping a `Tape`;
+//! `TermsKernel::forward` computes what `delan.Lagrangian.factor_terms` computes (L, H = L Lᵀ, c, g: the inertia
+//! network with its q-tangents carried forward, the potential's gradient by one pass down), optionally keeping a `Tape`;
 //! `TermsKernel::backward` takes the gradients of a loss with respect to L, H, c and g and returns those with
 //! respect to every weight, q, q̇ and z. `MlpKernel` does the same for a plain tanh MLP (the black-box heads,
 //! the learned insole mapping). Written out by hand, layer by layer (`net.rs`), per group of samples at the

@@ -1,5 +1,6 @@
 //! The Lagrangian's terms and their reverse pass (see the module's page): tiles of samples through the inertia
-//! and potential networks with their q-tangents (`net.rs`), the head per group of samples (`head.rs`).
+//! network with its q-tangents (`net.rs`) and the potential network with its gradient (`potential.rs`), the head
+//! per group of samples (`head.rs`).
 
 use super::dispatch::KernelReal;
 use super::head::{self, Lanes, Num, Outs, MMAX, NMAX};
