@@ -29,6 +29,11 @@ pub(crate) fn g_offset<T: Real>(net: &Net<T>, t: usize, n: usize) -> usize {
     tape_len(net, t, n) - t * n
 }
 
+/// Offset of β (t × n × 2) in a tile's tape.
+fn beta_offset<T: Real>(net: &Net<T>, t: usize, n: usize) -> usize {
+    g_offset(net, t, n) - 2 * t * n
+}
+
 /// The tape's blocks of hidden layer `li`: offsets of h, ν, α.
 fn blocks<T: Real>(net: &Net<T>, t: usize, li: usize) -> (usize, usize, usize) {
     let off = 3 * t * net.layers[..li].iter().map(|l| l.op).sum::<usize>();
@@ -78,16 +83,16 @@ pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, 
             }
         }
         if li > 0 {
-            let above = &net.layers[li];
-            let (_, pnb, _) = blocks(net, t, li - 1);
+            // ν of the layer below, which is this layer's input
+            let (layer, (_, pnb, _)) = (&net.layers[li], blocks(net, t, li - 1));
             let (lo, hi) = tape.split_at_mut(ab);
-            gemm::<T, FMA, WIDE>(t, op, above.ip, &hi[..t * op], op, 1, &above.w, above.ip, &mut lo[pnb..pnb + t * above.ip], above.ip, false);
+            gemm::<T, FMA, WIDE>(t, op, layer.ip, &hi[..t * op], op, 1, &layer.w, layer.ip, &mut lo[pnb..pnb + t * layer.ip], layer.ip, false);
         }
     }
     // β on φ's columns and g/v_scale
     let l0 = &net.layers[0];
     let (_, _, ab) = blocks(net, t, 0);
-    let bo = tape_len(net, t, n) - t * n * 3;
+    let bo = beta_offset(net, t, n);
     for r in 0..t {
         let alpha = &tape[ab + r * l0.op..ab + (r + 1) * l0.op];
         let mut beta = [T::default(); 2 * super::head::NMAX];
@@ -145,7 +150,7 @@ pub(crate) fn backward<T: Real, const FMA: bool, const WIDE: bool>(
     // β̄ on φ's columns, ∂φ/∂q's gradient, then ᾱ_1 = W_0[:, φ] β̄ and W̄_0[:, φ] += α_1 β̄ᵀ
     let l0 = &net.layers[0];
     let (op0, ip0) = (l0.op, l0.ip);
-    let bo = tape_len(net, t, n) - t * n * 3;
+    let bo = beta_offset(net, t, n);
     let (_, _, ab0) = blocks(net, t, 0);
     let abar = &mut up[..t * op0];
     abar.fill(T::default());
