@@ -111,11 +111,13 @@ pub(crate) fn forward<T: Real, const FMA: bool, const WIDE: bool>(net: &Net<T>, 
     }
 }
 
-/// Scratch of the reverse pass: per hidden layer h̄ (t × width), and two t × width work rows.
+/// Scratch of the reverse pass: per hidden layer h̄ (t × width), two t × width work rows, and the first layer's
+/// weight-gradient columns of one joint (two × width).
 pub(crate) struct PotBufs<T> {
     hbar: Vec<T>,
     up: Vec<T>,
     nu: Vec<T>,
+    col: Vec<T>,
 }
 
 impl<T: Real> PotBufs<T> {
@@ -123,7 +125,8 @@ impl<T: Real> PotBufs<T> {
         let hidden = &net.layers[..net.layers.len() - 1];
         let total = t * hidden.iter().map(|l| l.op).sum::<usize>();
         let w = t * net.width();
-        PotBufs { hbar: vec![T::default(); total], up: vec![T::default(); w], nu: vec![T::default(); w] }
+        let z = T::default();
+        PotBufs { hbar: vec![z; total], up: vec![z; w], nu: vec![z; w], col: vec![z; 2 * net.layers[0].op] }
     }
 }
 
@@ -146,7 +149,7 @@ pub(crate) fn backward<T: Real, const FMA: bool, const WIDE: bool>(
     for l in 1..nh {
         hoff[l] = hoff[l - 1] + t * net.layers[l - 1].op;
     }
-    let PotBufs { hbar, up, nu } = bufs;
+    let PotBufs { hbar, up, nu, col } = bufs;
     // β̄ on φ's columns, ∂φ/∂q's gradient, then ᾱ_1 = W_0[:, φ] β̄ and W̄_0[:, φ] += α_1 β̄ᵀ
     let l0 = &net.layers[0];
     let (op0, ip0) = (l0.op, l0.ip);
@@ -154,7 +157,6 @@ pub(crate) fn backward<T: Real, const FMA: bool, const WIDE: bool>(
     let (_, _, ab0) = blocks(net, t, 0);
     let abar = &mut up[..t * op0];
     abar.fill(T::default());
-    let mut col = vec![T::default(); 2 * op0];
     for (k, &(ca, cb)) in tile.cols.iter().enumerate() {
         col.fill(T::default());
         let (cola, colb) = col.split_at_mut(op0);

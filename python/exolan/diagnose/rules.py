@@ -294,9 +294,10 @@ def gain_as_confirmed(e_before: np.ndarray, e_after: np.ndarray, groups: np.ndar
     where the confirmation combined groups, their mean gains with the confirmation's weights, each group's
     block-bootstrap SE (independent groups, a normal interval at level 1 − alpha) and the relative gain over the
     base's error in the same combination (its interval the gain's over that error, whose own spread is left out);
-    where it pooled, the pooled `paired_gain`. The pooled gain stays in `pooled`. One statistic for the claim and its interval: pooled beside a combined decision, the interval is
-    set by the noisiest task and can hold 0 for a model the confirmation handed over (docs/DIAGNOSIS.md, "The
-    extended model's reported gain, combined as its confirmation")."""
+    where it pooled, the pooled `paired_gain`. The pooled gain stays in `pooled`. One statistic for the claim and
+    its interval: pooled beside a combined decision, the interval is set by the noisiest task and can hold 0 for a
+    model the confirmation handed over (docs/DIAGNOSIS.md, "The extended model's reported gain, combined as its
+    confirmation")."""
     g = paired_gain(e_before, e_after, s, alpha=alpha)
     pooled = dict(gain=g["gain"], ci=g["ci"], rel=g["rel"], rel_ci=g["rel_ci"])
     weights = confirmation.get("weights")
